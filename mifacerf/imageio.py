@@ -105,6 +105,9 @@ def read_exr(path: str | os.PathLike, channels: int | None = None,
             chans = {k: v.pixels for k, v in f.channels().items()}
     except Exception as exc:  # OpenEXR raises RuntimeError for truncated/corrupt data
         raise ImageFileError(f"{path}: truncated or corrupt OpenEXR file ({exc})") from exc
+    if "RGBA" in chans:  # the bindings merge R, G, B, A into one array
+        rgba = chans.pop("RGBA")
+        chans["RGB"], chans["A"] = rgba[..., :3], rgba[..., 3]
     if "RGB" in chans:
         rgb = chans["RGB"]
     elif all(c in chans for c in "RGB"):
