@@ -12,3 +12,5 @@ def main():
 
 if __name__ == "__main__":
     main()
+from mifacerf.capture.cli import capture_cmd, calibrate_group  # noqa: E402
+main.add_command(capture_cmd); main.add_command(calibrate_group)  # noqa: E702
