@@ -1,0 +1,438 @@
+"""Dr.Jit evaluator of blend weights for all (frame × fiducial vertex) pairs at once.
+
+One kernel per dimensionality ``m ∈ {1, 2, 3}`` (``m = 0`` vertices have constant
+weights and need none) does, for every lane = (fiducial vertex ``f``, frame ``t``):
+
+1. gather the target's neighbourhood ``P_t(V_f)``;
+2. Horn (1987) alignment onto the neutral's neighbourhood: the 4x4 matrix
+   ``N(M)`` is diagonalised by cyclic Jacobi sweeps (branch-free, a fixed
+   number of sweeps; 5 suffice for float64 on 4x4, 6 are used), the quaternion
+   of the largest eigenvalue gives ``R``;
+3. projection of the aligned deformation onto the vertex's PCA basis, ``z ∈ R^m``;
+4. point location by a **visibility walk** in the vertex's triangulation
+   (``dr.while_loop``; start simplex = the one containing the sources'
+   centroid; step across the facet of the most negative barycentric).  The walk
+   terminates in Delaunay and regular triangulations (Edelsbrunner's
+   acyclicity); lanes still walking after ``max_iter`` steps (numerical cycles)
+   fall back to a brute-force search over the vertex's simplices;
+5. barycentric weights in closed form (``T (z - r)``), or — when the walk leaves
+   the hull through a boundary facet — the barycentrics of the nearest point on
+   the hull (a loop over the vertex's hull facets: point, segment or triangle
+   closest-point tests).
+
+Everything is in the working precision (``float32`` or ``float64``, both
+tested).  Scalars that may change between calls (tolerances, sizes) are passed
+as opaque arrays so the kernels are compiled once.  Index arrays are
+bound-checked in NumPy before they are handed to ``dr.gather``, which does not
+check them (32-bit indices).
+
+The NumPy reference in :mod:`mifacerf.blending.reference` computes the same
+weights in the straightforward way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["backend", "GroupTables", "evaluate_group", "JACOBI_SWEEPS"]
+
+#: Jacobi sweeps for the 4x4 eigenproblem of Horn's method
+JACOBI_SWEEPS = {"float32": 5, "float64": 6}
+#: at most this many lanes per kernel launch
+MAX_LANES = 1 << 22
+
+
+def backend():
+    """The Dr.Jit array namespace for mifacerf's variant (``drjit.llvm`` or ``drjit.cuda``), or None.
+
+    The variant is chosen only through :func:`mifacerf.variant.ensure_variant`; scalar variants have no
+    vectorised backend (callers then fall back to the NumPy reference).
+    """
+    from mifacerf.variant import ensure_variant
+
+    mi = ensure_variant()
+    name = mi.variant()
+    if name.startswith("cuda"):
+        import drjit.cuda as B
+    elif name.startswith("llvm"):
+        import drjit.llvm as B
+    else:
+        return None
+    return B
+
+
+@dataclass
+class GroupTables:
+    """Flat tables of the fiducials of one dimensionality ``m`` (built by ``BlendModel``).
+
+    Shapes (``G`` fiducials in the group, ``K`` neighbourhood width, ``S``/``H`` simplices/facets of the
+    whole group; all indices already global within the group):
+
+    nb_idx ``(G, K)`` int   template vertex ids; nb_w ``(G, K)`` 0/1 weights
+    ref ``(G, K, 3)``      neutral neighbourhood centred on its (weighted) centroid
+    basis ``(G, m, K, 3)`` PCA directions divided by the PCA scale (zero on padding)
+    z0 ``(G, m)``          coordinate offset ``<q̄ - mean, basis>``
+    T ``(S, m, m)``, r ``(S, m)``, nbr ``(S, m+1)`` (-1 = boundary), sid ``(S, m+1)`` source ids
+    s_start ``(G,)``, s_first ``(G,)``, s_count ``(G,)``   walk start; the group's simplex range per vertex
+    fpts ``(H, m, m)`` facet vertex coordinates, fsid ``(H, m)`` source ids, f_first/f_count ``(G,)``
+    """
+
+    m: int
+    nb_idx: np.ndarray
+    nb_w: np.ndarray
+    ref: np.ndarray
+    basis: np.ndarray
+    z0: np.ndarray
+    T: np.ndarray
+    r: np.ndarray
+    nbr: np.ndarray
+    sid: np.ndarray
+    s_start: np.ndarray
+    s_first: np.ndarray
+    s_count: np.ndarray
+    fpts: np.ndarray
+    fsid: np.ndarray
+    f_first: np.ndarray
+    f_count: np.ndarray
+
+    def check(self, n_vertices: int, n_sources: int) -> None:
+        """Bound-check every index array (dr.gather does not)."""
+        S, H, G = self.T.shape[0], self.fpts.shape[0], self.nb_idx.shape[0]
+
+        def inrange(a, lo, hi, what):
+            a = np.asarray(a)
+            if a.size and (a.min() < lo or a.max() >= hi):
+                raise IndexError(f"blending tables: {what} out of range [{lo}, {hi})")
+
+        inrange(self.nb_idx, 0, n_vertices, "neighbourhood vertex id")
+        inrange(self.nbr, -1, S, "simplex neighbour")
+        inrange(self.sid, 0, n_sources, "simplex source id")
+        inrange(self.fsid, 0, n_sources, "facet source id")
+        inrange(self.s_start, 0, S, "start simplex")
+        inrange(self.s_first, 0, max(S, 1), "simplex range")
+        inrange(self.s_first + self.s_count, 1, S + 1, "simplex range end")
+        if H:
+            inrange(self.f_first, 0, H, "facet range")
+            inrange(self.f_first + self.f_count, 1, H + 1, "facet range end")
+        if np.any(self.f_count < 1) or np.any(self.s_count < 1):
+            raise IndexError("blending tables: every vertex needs >= 1 simplex and >= 1 hull facet")
+        if self.basis.shape[0] != G:
+            raise ValueError("blending tables: inconsistent group size")
+
+
+# ----------------------------------------------------------------------------------------------- kernel
+def _jacobi4(A, sweeps, Float):
+    """Eigen-decomposition of symmetric 4x4 ``A`` (list of lists of arrays) by cyclic Jacobi."""
+    A = [row[:] for row in A]
+    one, zero = Float(1.0), Float(0.0)
+    V = [[one if r == c else zero for c in range(4)] for r in range(4)]
+    import drjit as dr
+
+    for _ in range(sweeps):
+        for p in range(3):
+            for q in range(p + 1, 4):
+                apq, app, aqq = A[p][q], A[p][p], A[q][q]
+                nz = apq != 0
+                theta = (aqq - app) / dr.select(nz, 2 * apq, 1.0)
+                t = dr.sign(theta) / (dr.abs(theta) + dr.sqrt(dr.fma(theta, theta, 1.0)))
+                t = dr.select(nz, t, 0.0)
+                c = dr.rsqrt(dr.fma(t, t, 1.0))
+                s = t * c
+                A[p][p] = app - t * apq
+                A[q][q] = aqq + t * apq
+                A[p][q] = A[q][p] = zero
+                for r in range(4):
+                    if r != p and r != q:
+                        arp, arq = A[r][p], A[r][q]
+                        A[r][p] = A[p][r] = c * arp - s * arq
+                        A[r][q] = A[q][r] = s * arp + c * arq
+                for r in range(4):
+                    vrp, vrq = V[r][p], V[r][q]
+                    V[r][p] = c * vrp - s * vrq
+                    V[r][q] = s * vrp + c * vrq
+    return [A[i][i] for i in range(4)], V
+
+
+def _horn_rotation(M, sweeps, Float):
+    """Rotation (3x3 list) maximising ``tr(Rᵀ M)`` for ``M = Σ p qᵀ`` (3x3 list), via Horn's quaternion."""
+    import drjit as dr
+
+    norm = dr.sqrt(sum(M[a][b] * M[a][b] for a in range(3) for b in range(3)))
+    inv = dr.select(norm > 0, dr.rcp(dr.select(norm > 0, norm, 1.0)), 0.0)
+    (Sxx, Sxy, Sxz), (Syx, Syy, Syz), (Szx, Szy, Szz) = [[M[a][b] * inv for b in range(3)] for a in range(3)]
+    N = [[Sxx + Syy + Szz, Syz - Szy, Szx - Sxz, Sxy - Syx],
+         [Syz - Szy, Sxx - Syy - Szz, Sxy + Syx, Szx + Sxz],
+         [Szx - Sxz, Sxy + Syx, -Sxx + Syy - Szz, Syz + Szy],
+         [Sxy - Syx, Szx + Sxz, Syz + Szy, -Sxx - Syy + Szz]]
+    lam, V = _jacobi4(N, sweeps, Float)
+    best, q = lam[0], [V[r][0] for r in range(4)]
+    for c in range(1, 4):
+        better = lam[c] > best
+        best = dr.select(better, lam[c], best)
+        q = [dr.select(better, V[r][c], q[r]) for r in range(4)]
+    w, x, y, z = q
+    n2 = w * w + x * x + y * y + z * z
+    s2 = 2.0 / n2
+    return [[1.0 - s2 * (y * y + z * z), s2 * (x * y - w * z), s2 * (x * z + w * y)],
+            [s2 * (x * y + w * z), 1.0 - s2 * (x * x + z * z), s2 * (y * z - w * x)],
+            [s2 * (x * z - w * y), s2 * (y * z + w * x), 1.0 - s2 * (x * x + y * y)]]
+
+
+def _closest_triangle(p, a, b, c, dr):
+    """Ericson's closest point on a triangle, branch-free; returns barycentrics (u, v, w)."""
+    dot = lambda x, y: x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+    sub = lambda x, y: [x[i] - y[i] for i in range(3)]
+    ab, ac, ap, bp, cp = sub(b, a), sub(c, a), sub(p, a), sub(p, b), sub(p, c)
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    sd = lambda num, den: num / dr.select(den != 0, den, 1.0)
+    den = va + vb + vc
+    v = sd(vb, den)
+    w = sd(vc, den)
+    u = 1.0 - v - w
+    rBC = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    t = sd(d4 - d3, (d4 - d3) + (d5 - d6))
+    u, v, w = dr.select(rBC, 0.0, u), dr.select(rBC, 1.0 - t, v), dr.select(rBC, t, w)
+    rAC = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    t = sd(d2, d2 - d6)
+    u, v, w = dr.select(rAC, 1.0 - t, u), dr.select(rAC, 0.0, v), dr.select(rAC, t, w)
+    rC = (d6 >= 0) & (d5 <= d6)
+    u, v, w = dr.select(rC, 0.0, u), dr.select(rC, 0.0, v), dr.select(rC, 1.0, w)
+    rAB = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    t = sd(d1, d1 - d3)
+    u, v, w = dr.select(rAB, 1.0 - t, u), dr.select(rAB, t, v), dr.select(rAB, 0.0, w)
+    rB = (d3 >= 0) & (d4 <= d3)
+    u, v, w = dr.select(rB, 0.0, u), dr.select(rB, 1.0, v), dr.select(rB, 0.0, w)
+    rA = (d1 <= 0) & (d2 <= 0)
+    u, v, w = dr.select(rA, 1.0, u), dr.select(rA, 0.0, v), dr.select(rA, 0.0, w)
+    return u, v, w
+
+
+def _types(B, precision):
+    if precision == "float32":
+        return B.Float, np.float32
+    if precision == "float64":
+        return B.Float64, np.float64
+    raise ValueError(f"precision must be 'float32' or 'float64'; got {precision!r}")
+
+
+def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "float32",
+                   inside_tol: float | None = None, max_iter: int | None = None, B=None,
+                   return_coords: bool = False):
+    """Weights of one dimensionality group for all frames.
+
+    Parameters
+    ----------
+    g : GroupTables (already bound-checked)
+    targets_vt : ndarray ``(V, T, 3)``
+        Target meshes, vertex-major (so that one vertex's frames are contiguous).
+    precision : "float32" | "float64"
+    inside_tol : float
+        Barycentric tolerance of the inside test (default 1e-5 for float32, 1e-10 for float64).
+    max_iter : int
+        Walk steps before the brute-force fallback (default ``2 * max simplices per vertex + 8``).
+
+    Returns
+    -------
+    ids : ndarray ``(G, T, m+1)`` int32, w : ndarray ``(G, T, m+1)`` float (the working precision),
+    and, with ``return_coords``, the projected coordinates ``(G, T, m)``.
+    """
+    import drjit as dr
+
+    B = B or backend()
+    Float, npf = _types(B, precision)
+    Int, UInt, Bool = B.Int, B.UInt, B.Bool
+    m = g.m
+    G, K = g.nb_idx.shape
+    V, T = targets_vt.shape[:2]
+    if inside_tol is None:
+        inside_tol = 1e-5 if precision == "float32" else 1e-10
+    if max_iter is None:
+        max_iter = 2 * int(g.s_count.max()) + 8
+    sweeps = JACOBI_SWEEPS[precision]
+
+    # ---- tables → device (once per call)
+    tgt = Float(np.ascontiguousarray(targets_vt, dtype=npf).ravel())
+    nb_idx = UInt(g.nb_idx.astype(np.uint32).ravel())
+    nb_w = Float(g.nb_w.astype(npf).ravel())
+    ref = Float(g.ref.astype(npf).ravel())
+    basis = Float(g.basis.astype(npf).ravel())
+    z0 = Float(g.z0.astype(npf).ravel())
+    Tt = Float(g.T.astype(npf).ravel())
+    rr = Float(g.r.astype(npf).ravel())
+    nbr = Int(g.nbr.astype(np.int32).ravel())
+    sid = Int(g.sid.astype(np.int32).ravel())
+    s_start = Int(g.s_start.astype(np.int32))
+    s_first = Int(g.s_first.astype(np.int32))
+    s_count = Int(g.s_count.astype(np.int32))
+    fpts = Float(g.fpts.astype(npf).ravel())
+    fsid = Int(g.fsid.astype(np.int32).ravel())
+    f_first = Int(g.f_first.astype(np.int32))
+    f_count = Int(g.f_count.astype(np.int32))
+    eps = dr.opaque(Float, inside_tol)
+    big = dr.opaque(Float, np.finfo(npf).max)
+    it_max = dr.opaque(Int, max_iter)
+    T_op = dr.opaque(UInt, T)
+
+    if V * T * 3 >= 2 ** 32:
+        raise ValueError(f"targets too large for 32-bit gathers: {V} x {T} x 3")
+    frames_per_launch = max(1, MAX_LANES // max(G, 1))
+    ids_out = np.empty((G, T, m + 1), dtype=np.int32)
+    w_out = np.empty((G, T, m + 1), dtype=npf)
+    z_out = np.empty((G, T, m), dtype=npf) if return_coords else None
+
+    for t0 in range(0, T, frames_per_launch):
+        Tc = min(frames_per_launch, T - t0)
+        lane = dr.arange(UInt, G * Tc)
+        Tc_op = dr.opaque(UInt, Tc)
+        f = lane // Tc_op
+        t = lane - f * Tc_op + dr.opaque(UInt, t0)
+        fi = Int(f)
+
+        # -------- 1) neighbourhood, centred on its first (centre) vertex
+        P, W = [], []
+        for j in range(K):
+            vid = dr.gather(UInt, nb_idx, f * K + j)
+            base = (vid * T_op + t) * 3
+            P.append([dr.gather(Float, tgt, base + c) for c in range(3)])
+            W.append(dr.gather(Float, nb_w, f * K + j))
+        o = P[0]
+        P = [[p[c] - o[c] for c in range(3)] for p in P]
+        wsum = sum(W)
+        cp = [sum(W[j] * P[j][c] for j in range(K)) / wsum for c in range(3)]
+        P = [[p[c] - cp[c] for c in range(3)] for p in P]
+        # -------- 2) Horn: M = Σ w p qᵀ (q centred), R maps the target onto the neutral
+        M = [[Float(0.0) for _ in range(3)] for _ in range(3)]
+        for j in range(K):
+            q = [dr.gather(Float, ref, (f * K + j) * 3 + c) for c in range(3)]
+            for a in range(3):
+                wp = W[j] * P[j][a]
+                for b in range(3):
+                    M[a][b] = dr.fma(wp, q[b], M[a][b])
+        R = _horn_rotation(M, sweeps, Float)
+        # -------- 3) projection
+        z = [dr.gather(Float, z0, f * m + k) for k in range(m)]
+        for j in range(K):
+            a = [R[i][0] * P[j][0] + R[i][1] * P[j][1] + R[i][2] * P[j][2] for i in range(3)]
+            for k in range(m):
+                e = ((f * m + k) * K + j) * 3
+                z[k] = dr.fma(a[0], dr.gather(Float, basis, e), z[k])
+                z[k] = dr.fma(a[1], dr.gather(Float, basis, e + 1), z[k])
+                z[k] = dr.fma(a[2], dr.gather(Float, basis, e + 2), z[k])
+
+        def bary(s):
+            si = UInt(s)
+            rr_ = [z[k] - dr.gather(Float, rr, si * m + k) for k in range(m)]
+            b = []
+            for i in range(m):
+                acc = Float(0.0)
+                for k in range(m):
+                    acc = dr.fma(dr.gather(Float, Tt, (si * m + i) * m + k), rr_[k], acc)
+                b.append(acc)
+            b.append(1.0 - sum(b))
+            return b
+
+        # -------- 4) visibility walk
+        def w_cond(s, done, outside, it):
+            return ~done & (it < it_max)
+
+        def w_body(s, done, outside, it):
+            b = bary(s)
+            jmin, bmin = Int(0), b[0]
+            for j in range(1, m + 1):
+                lt = b[j] < bmin
+                jmin = dr.select(lt, j, jmin)
+                bmin = dr.select(lt, b[j], bmin)
+            nb = dr.gather(Int, nbr, UInt(s) * (m + 1) + UInt(jmin))
+            inside = bmin >= -eps
+            exit_out = ~inside & (nb < 0)
+            fin = inside | exit_out
+            return dr.select(fin, s, nb), fin, exit_out, it + 1
+
+        s0 = dr.gather(Int, s_start, f)
+        s, done, outside, _ = dr.while_loop(
+            state=(s0, Bool(False), Bool(False), Int(0)), cond=w_cond, body=w_body, label="blend_walk")
+
+        # fallback: brute force for lanes whose walk did not finish
+        stuck = ~done
+        first = dr.gather(Int, s_first, f)
+        count = dr.gather(Int, s_count, f)
+
+        def b_cond(k, best_s, best_min):
+            return stuck & (k < count)
+
+        def b_body(k, best_s, best_min):
+            sk = first + k
+            b = bary(sk)
+            bmin = b[0]
+            for j in range(1, m + 1):
+                bmin = dr.minimum(bmin, b[j])
+            better = bmin > best_min
+            return k + 1, dr.select(better, sk, best_s), dr.select(better, bmin, best_min)
+
+        _, best_s, best_min = dr.while_loop(
+            state=(Int(0), Int(s), -big), cond=b_cond, body=b_body, label="blend_bruteforce")
+        s = dr.select(stuck, best_s, s)
+        outside = dr.select(stuck, best_min < -eps, outside)
+
+        # -------- 5a) inside: clamped, renormalised barycentrics
+        b = bary(s)
+        b = [dr.maximum(x, 0.0) for x in b]
+        bs = sum(b)
+        b = [x / dr.select(bs > 0, bs, 1.0) for x in b]
+        ids = [dr.gather(Int, sid, UInt(s) * (m + 1) + j) for j in range(m + 1)]
+
+        # -------- 5b) outside: nearest point on the hull facets
+        ffirst = dr.gather(Int, f_first, f)
+        fcount = dr.gather(Int, f_count, f)
+
+        def facet_weights(h):
+            hu = UInt(h)
+            Vt = [[dr.gather(Float, fpts, (hu * m + i) * m + c) for c in range(m)] for i in range(m)]
+            if m == 1:
+                d = z[0] - Vt[0][0]
+                return [Float(1.0)], d * d
+            if m == 2:
+                ab = [Vt[1][c] - Vt[0][c] for c in range(2)]
+                den = ab[0] * ab[0] + ab[1] * ab[1]
+                num = (z[0] - Vt[0][0]) * ab[0] + (z[1] - Vt[0][1]) * ab[1]
+                tt = dr.clip(num / dr.select(den > 0, den, 1.0), 0.0, 1.0)
+                d = [z[c] - (Vt[0][c] + tt * ab[c]) for c in range(2)]
+                return [1.0 - tt, tt], d[0] * d[0] + d[1] * d[1]
+            u, v, w = _closest_triangle(z, Vt[0], Vt[1], Vt[2], dr)
+            d = [z[c] - (u * Vt[0][c] + v * Vt[1][c] + w * Vt[2][c]) for c in range(3)]
+            return [u, v, w], d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+
+        def h_cond(k, best_h, best_d2):
+            return outside & (k < fcount)
+
+        def h_body(k, best_h, best_d2):
+            h = ffirst + k
+            _, d2 = facet_weights(h)
+            better = d2 < best_d2
+            return k + 1, dr.select(better, h, best_h), dr.select(better, d2, best_d2)
+
+        _, best_h, _ = dr.while_loop(
+            state=(Int(0), Int(ffirst), big), cond=h_cond, body=h_body, label="blend_hull")
+        fb, _ = facet_weights(best_h)
+        fb = [dr.maximum(x, 0.0) for x in fb]
+        fs = sum(fb)
+        fb = [x / dr.select(fs > 0, fs, 1.0) for x in fb]
+        fids = [dr.gather(Int, fsid, UInt(best_h) * m + j) for j in range(m)]
+        ids = [dr.select(outside, fids[j] if j < m else fids[0], ids[j]) for j in range(m + 1)]
+        ws = [dr.select(outside, fb[j] if j < m else Float(0.0), b[j]) for j in range(m + 1)]
+
+        dr.eval(ids, ws, z if return_coords else [])
+        sl = slice(t0, t0 + Tc)
+        for j in range(m + 1):
+            ids_out[:, sl, j] = np.asarray(ids[j].numpy()).reshape(G, Tc)
+            w_out[:, sl, j] = np.asarray(ws[j].numpy()).reshape(G, Tc)
+        if return_coords:
+            for k in range(m):
+                z_out[:, sl, k] = np.asarray(z[k].numpy()).reshape(G, Tc)
+    if return_coords:
+        return ids_out, w_out, z_out
+    return ids_out, w_out
