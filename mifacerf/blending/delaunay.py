@@ -65,7 +65,7 @@ __all__ = [
 #: Hadamard-ratio threshold under which a simplex counts as flat (the triangulation is rejected)
 FLAT_TOL = 1e-12
 #: boundary simplices flatter than this are peeled off (see rule 4b)
-SLIVER_TOL = 1e-6
+SLIVER_TOL = 1e-3
 #: relative tolerance on "simplex volumes add up to the hull's" (before peeling)
 VOLUME_RTOL = 1e-8
 #: default duplicate-merging distance (units of the PCA scale)

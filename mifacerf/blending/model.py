@@ -308,7 +308,7 @@ class BlendModel:
             for i, f in enumerate(rows):
                 sp, tri = self.spaces[f], self.triangulations[f]
                 basis[i] = sp.basis[:m] / sp.scale
-                z0[i] = np.einsum("kc,mkc->m", cq[i][None, :] - sp.mean, basis[i] * nb_w[i][None, :, None])
+                z0[i] = np.einsum("kc,mkc->m", q[i] - sp.mean, basis[i] * nb_w[i][None, :, None])
                 S_ = tri.n_simplices
                 Ts.append(tri.transform[:, :m, :])
                 rs.append(tri.transform[:, m, :])
@@ -330,7 +330,7 @@ class BlendModel:
         self._groups = groups
         return groups
 
-    def fiducial_weights(self, targets, method: str = "drjit", precision: str = "float32"):
+    def fiducial_weights(self, targets, method: str = "drjit", precision: str = "float64"):
         """Weights at the fiducials: ``(ids (T, F, 4) int32, w (T, F, 4) float64)`` (slots unsorted).
 
         ``method``: ``"drjit"`` (vectorised; falls back to the reference on scalar variants) or
@@ -358,7 +358,7 @@ class BlendModel:
             w[:, zero, 0] = 1.0
         groups = self.group_tables()
         if groups:
-            Xvt = np.ascontiguousarray(np.transpose(X, (1, 0, 2)))
+            Xvt = np.ascontiguousarray(np.transpose(X - self.neutral, (1, 0, 2)))
             for m, (rows, g) in groups.items():
                 gi, gw = evaluate_group(g, Xvt, precision=precision, B=B)
                 ids[:, rows, : m + 1] = np.transpose(gi, (1, 0, 2))
@@ -366,7 +366,7 @@ class BlendModel:
                 w[:, rows, : m + 1] = np.transpose(gw, (1, 0, 2))
         return ids, w
 
-    def weights(self, targets, method: str = "drjit", precision: str = "float32") -> SparseWeights:
+    def weights(self, targets, method: str = "drjit", precision: str = "float64") -> SparseWeights:
         """Blend weights of target meshes.
 
         Parameters
@@ -400,11 +400,28 @@ class BlendModel:
                 w[t0:t0 + step, self.interp_vertices] = mw
         return SparseWeights(indices=ids, weights=w.astype(np.float32))
 
-    def dense_weights(self, targets, method: str = "drjit", precision: str = "float32") -> np.ndarray:
+    def dense_weights(self, targets, method: str = "drjit", precision: str = "float64") -> np.ndarray:
         """``(T, V, n_src)`` float32 dense weights (convenience; see :meth:`weights`)."""
         return self.weights(targets, method=method, precision=precision).dense(self.n_sources)
 
     # ---------------------------------------------------------------------------------- diagnostics
+    def weight_lipschitz(self) -> np.ndarray:
+        """``(F,)`` per fiducial: the largest rate of change of any weight per metre of local deformation.
+
+        ``max_s,j |∇ b_j|`` over the vertex's simplices, divided by the PCA scale (0 for ``m = 0``).  A
+        weight can change by this much times a change of the deformation vector (RMS over... no: Euclidean
+        norm of the 3|V|-vector, metres).  Slivers make it large: float32 evaluation (about 1e-8 m of
+        rounding in the deformation) then agrees with float64 only to ``1e-8 × this``.
+        """
+        out = np.zeros(self.fiducials.size)
+        for f, (sp, tri) in enumerate(zip(self.spaces, self.triangulations)):
+            if tri.m == 0:
+                continue
+            T = tri.transform[:, : tri.m, :]
+            g = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)
+            out[f] = np.linalg.norm(g, axis=2).max() / sp.scale
+        return out
+
     def local_deformations(self, meshes) -> np.ndarray:
         """Local deformation vectors at the fiducials: ``(N, F, K, 3)`` for meshes ``(N, V, 3)``.
 

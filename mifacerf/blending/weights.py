@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["backend", "GroupTables", "evaluate_group", "JACOBI_SWEEPS"]
+__all__ = ["backend", "GroupTables", "evaluate_group", "horn_rotations", "JACOBI_SWEEPS"]
 
 #: Jacobi sweeps for the 4x4 eigenproblem of Horn's method
 JACOBI_SWEEPS = {"float32": 5, "float64": 6}
@@ -72,7 +72,7 @@ class GroupTables:
     nb_idx ``(G, K)`` int   template vertex ids; nb_w ``(G, K)`` 0/1 weights
     ref ``(G, K, 3)``      neutral neighbourhood centred on its (weighted) centroid
     basis ``(G, m, K, 3)`` PCA directions divided by the PCA scale (zero on padding)
-    z0 ``(G, m)``          coordinate offset ``<q̄ - mean, basis>``
+    z0 ``(G, m)``          the neutral's own coordinates ``<P_0(V) - mean, basis>``
     T ``(S, m, m)``, r ``(S, m)``, nbr ``(S, m+1)`` (-1 = boundary), sid ``(S, m+1)`` source ids
     s_start ``(G,)``, s_first ``(G,)``, s_count ``(G,)``   walk start; the group's simplex range per vertex
     fpts ``(H, m, m)`` facet vertex coordinates, fsid ``(H, m)`` source ids, f_first/f_count ``(G,)``
@@ -228,7 +228,8 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
     ----------
     g : GroupTables (already bound-checked)
     targets_vt : ndarray ``(V, T, 3)``
-        Target meshes, vertex-major (so that one vertex's frames are contiguous).
+        Target meshes **minus the neutral**, vertex-major (one vertex's frames are contiguous).
+        Displacements are small numbers, which keeps float32 accurate to ~1e-9 m.
     precision : "float32" | "float64"
     inside_tol : float
         Barycentric tolerance of the inside test (default 1e-5 for float32, 1e-10 for float64).
@@ -292,31 +293,34 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
         t = lane - f * Tc_op + dr.opaque(UInt, t0)
         fi = Int(f)
 
-        # -------- 1) neighbourhood, centred on its first (centre) vertex
-        P, W = [], []
+        # -------- 1) neighbourhood, centred on its first (centre) vertex.  The targets arrive as
+        #          displacements from the neutral (small numbers, so float32 keeps ~1e-9 m); positions
+        #          are rebuilt relative to the centre from the neutral's (centred) neighbourhood.
+        P, W, Qn = [], [], []
         for j in range(K):
             vid = dr.gather(UInt, nb_idx, f * K + j)
             base = (vid * T_op + t) * 3
+            Qn.append([dr.gather(Float, ref, (f * K + j) * 3 + c) for c in range(3)])
             P.append([dr.gather(Float, tgt, base + c) for c in range(3)])
             W.append(dr.gather(Float, nb_w, f * K + j))
-        o = P[0]
-        P = [[p[c] - o[c] for c in range(3)] for p in P]
+        d0, q0 = P[0], Qn[0]
+        P = [[(Qn[j][c] - q0[c]) + (P[j][c] - d0[c]) for c in range(3)] for j in range(K)]
         wsum = sum(W)
         cp = [sum(W[j] * P[j][c] for j in range(K)) / wsum for c in range(3)]
         P = [[p[c] - cp[c] for c in range(3)] for p in P]
         # -------- 2) Horn: M = Σ w p qᵀ (q centred), R maps the target onto the neutral
         M = [[Float(0.0) for _ in range(3)] for _ in range(3)]
         for j in range(K):
-            q = [dr.gather(Float, ref, (f * K + j) * 3 + c) for c in range(3)]
             for a in range(3):
                 wp = W[j] * P[j][a]
                 for b in range(3):
-                    M[a][b] = dr.fma(wp, q[b], M[a][b])
+                    M[a][b] = dr.fma(wp, Qn[j][b], M[a][b])
         R = _horn_rotation(M, sweeps, Float)
-        # -------- 3) projection
+        # -------- 3) projection of the displacement from the neutral (small numbers: no cancellation)
+        #          z = <R (p - p̄) - (q - q̄), basis> + z_neutral
         z = [dr.gather(Float, z0, f * m + k) for k in range(m)]
         for j in range(K):
-            a = [R[i][0] * P[j][0] + R[i][1] * P[j][1] + R[i][2] * P[j][2] for i in range(3)]
+            a = [R[i][0] * P[j][0] + R[i][1] * P[j][1] + R[i][2] * P[j][2] - Qn[j][i] for i in range(3)]
             for k in range(m):
                 e = ((f * m + k) * K + j) * 3
                 z[k] = dr.fma(a[0], dr.gather(Float, basis, e), z[k])
@@ -436,3 +440,30 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
     if return_coords:
         return ids_out, w_out, z_out
     return ids_out, w_out
+
+
+def horn_rotations(P, Q, weights=None, precision: str = "float64", B=None) -> np.ndarray:
+    """The kernel's Horn rotation on NumPy data (for tests): ``P, Q`` ``(N, k, 3)`` → ``R`` ``(N, 3, 3)``.
+
+    Same conventions as :func:`mifacerf.blending.horn` (``R`` maps ``P`` onto ``Q``); computed by the
+    Jacobi-sweep code that runs inside the evaluator.
+    """
+    import drjit as dr
+
+    B = B or backend()
+    Float, npf = _types(B, precision)
+    P = np.asarray(P, dtype=np.float64)
+    Q = np.asarray(Q, dtype=np.float64)
+    N, k = P.shape[:2]
+    w = np.ones((N, k)) if weights is None else np.broadcast_to(np.asarray(weights, dtype=np.float64), (N, k))
+    W = w.sum(axis=1, keepdims=True)
+    P = P - P[:, :1]          # as in the kernel: local origin at the first point (exact for coincident sets)
+    Q = Q - Q[:, :1]
+    Pc = P - np.einsum("nk,nkc->nc", w, P)[:, None] / W[..., None]
+    Qc = Q - np.einsum("nk,nkc->nc", w, Q)[:, None] / W[..., None]
+    M = np.einsum("nk,nka,nkb->nab", w, Pc, Qc)
+    Md = [[Float(M[:, a, b].astype(npf)) for b in range(3)] for a in range(3)]
+    R = _horn_rotation(Md, JACOBI_SWEEPS[precision], Float)
+    dr.eval(R)
+    return np.stack([np.stack([np.asarray(R[a][b].numpy(), dtype=np.float64) for b in range(3)], -1)
+                     for a in range(3)], -2)
