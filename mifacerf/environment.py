@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .imageio import read_hdr_or_exr, write_exr
+from .jitarrays import to_jit
 
 
 class EnvironmentError_(ValueError):
@@ -156,7 +157,7 @@ def evaluate_emitter(emitter, directions: np.ndarray, chunk: int = 1 << 20) -> n
     for s in range(0, len(directions), chunk):
         d = np.ascontiguousarray(directions[s:s + chunk], np.float32)
         si = dr.zeros(mi.SurfaceInteraction3f, len(d))
-        si.wi = -mi.Vector3f(d.T)
+        si.wi = -to_jit(mi.Vector3f, d.T)
         val = emitter.eval(si)
         out[s:s + chunk] = np.asarray(val).reshape(3, -1).T if np.asarray(val).shape[0] == 3 else np.asarray(val)
     return out

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..jitarrays import to_jit
 from ..environment import Environment, light_basis, sphere_quadrature
 from ..variant import ensure_variant
 
@@ -104,8 +105,8 @@ class RotatedLightBasis:
         self.filtered = prefilter(env, sigma_rad=0.5 * np.pi / n_theta)
         h, w = self.filtered.shape[:2]
         self._h, self._w = h, w
-        self._tex = mi.Float(self.filtered.reshape(-1).astype(np.float32))
-        self._q = mi.Vector3f(np.ascontiguousarray(self.q_dirs.T, dtype=np.float32))
+        self._tex = to_jit(mi.Float, self.filtered.reshape(-1))
+        self._q = to_jit(mi.Vector3f, self.q_dirs.T)
         self._dr = dr
         self._mi = mi
         self.identity = light_basis(env, self.directions, n_theta=max(256, 4 * n_theta))
@@ -216,7 +217,7 @@ class RotatedLightBasis:
             qx = dr.gather(mi.Float, self._q.x, qi)
             qy = dr.gather(mi.Float, self._q.y, qi)
             qz = dr.gather(mi.Float, self._q.z, qi)
-            m = [dr.gather(mi.Float, mi.Float(Rt[:, a, b].copy()), ri) for a in range(3) for b in range(3)]
+            m = [dr.gather(mi.Float, to_jit(mi.Float, Rt[:, a, b]), ri) for a in range(3) for b in range(3)]
             # (Rᵀ q)_b = Σ_a R_ab q_a
             d = mi.Vector3f(m[0] * qx + m[3] * qy + m[6] * qz,
                             m[1] * qx + m[4] * qy + m[7] * qz,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..jitarrays import to_jit
 from ..camera import Camera, stratified_pixel_samples
 from ..variant import ensure_variant
 
@@ -47,8 +48,8 @@ def camera_rays(camera: Camera, spp: int, seed: int = 0):
     mi = ensure_variant()
     uv = stratified_pixel_samples(camera.width, camera.height, spp, seed)
     o, d = camera.pixel_rays(uv)
-    origin = mi.Point3f(*[mi.Float(np.full(len(d), o[i], np.float32)) for i in range(3)])
-    return mi.Ray3f(origin, mi.Vector3f(np.ascontiguousarray(d.T, dtype=np.float32)))
+    origin = to_jit(mi.Point3f, np.repeat(np.asarray(o, np.float32)[:, None], len(d), axis=1))
+    return mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
 
 
 def primary_hits(scene, camera: Camera, spp: int = 4, seed: int = 0) -> PrimaryHits:
@@ -60,7 +61,7 @@ def primary_hits(scene, camera: Camera, spp: int = 4, seed: int = 0) -> PrimaryH
     si = scene.ray_intersect(ray)
     valid = np.asarray(si.is_valid()).astype(bool)
     idx = np.flatnonzero(valid).astype(np.uint32)
-    si_c = dr.gather(mi.SurfaceInteraction3f, si, mi.UInt32(idx))
+    si_c = dr.gather(mi.SurfaceInteraction3f, si, to_jit(mi.UInt32, idx))
     dr.eval(si_c)
     pixel = (idx // spp).astype(np.int64)
     h, w = camera.height, camera.width
@@ -78,7 +79,7 @@ def _batch_radiance(scene, hits: PrimaryHits, dirs: np.ndarray) -> np.ndarray:
     s_i = lane // b
     l_i = lane - s_i * b
     si = dr.gather(mi.SurfaceInteraction3f, hits.si, s_i)
-    wi = dr.gather(mi.Vector3f, mi.Vector3f(np.ascontiguousarray(dirs.T, dtype=np.float32)), l_i)
+    wi = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, dirs.T), l_i)
     bsdf = si.bsdf()
     value = bsdf.eval(mi.BSDFContext(), si, si.to_local(wi))
     lit = ~scene.ray_test(si.spawn_ray(wi))

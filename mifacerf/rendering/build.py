@@ -1,0 +1,92 @@
+"""``mifacerf build``: assemble the relightable morphable model from a capture and its registration.
+
+Reads only the capture folder and the registration folder (never ground truth):
+per source expression its registered geometry and, per camera, its dot-free
+reflectance field restricted to the pixels where the registered template is seen
+(texel map by ray casting the pixel centres: triangle, barycentrics, depth), stored
+texel-major in float16; the §5 blend model (local deformation spaces, Delaunay,
+culling); the eye and teeth reference expressions.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import Capture
+from ..registered import Registration
+from .meshscene import MeshScene
+from .model import ModelWriter
+
+
+def template_arrays(template: dict) -> dict:
+    """The arrays the model needs from a template dict (see docs/registration.md):
+    ``triangles`` (F, 3), ``fiducial`` (T,) bool, ``regions`` {name: vertex ids}."""
+    tri = np.asarray(template["triangles"], np.int64)
+    n = int(template.get("n_vertices", tri.max() + 1))
+    kinds = template.get("kinds")
+    fiducial = np.array([k == "dot" for k in kinds]) if kinds is not None else np.ones(n, bool)
+    regions = {k: np.asarray(v, np.int64) for k, v in (template.get("regions") or {}).items()}
+    return {"triangles": tri, "fiducial": fiducial, "regions": regions, "n_vertices": n}
+
+
+def pick_reference(names: list[str], categories: dict, wanted: tuple[str, ...], fallback: str) -> str:
+    """The first expression whose name contains one of ``wanted`` (eye/teeth reference), else ``fallback``."""
+    for w in wanted:
+        for n in names:
+            if w in n:
+                return n
+    return fallback
+
+
+def build_model(capture: str | Path, out: str | Path, registration: str | Path | None = None,
+                expressions: list[str] | None = None, cameras: list[str] | None = None,
+                overwrite: bool = False, progress=None, culling: bool = True) -> Path:
+    """Build a model folder ``out`` from ``capture`` (and ``registration``, default CAPTURE/registration)."""
+    from ..blending import BlendModel
+
+    cap = Capture(capture)
+    reg = Registration(registration or Path(capture) / "registration", capture=cap)
+    names = expressions or reg.expression_names
+    missing = [n for n in names if n not in reg.expression_names]
+    if missing:
+        raise ValueError(f"expressions not registered: {', '.join(missing)}")
+    if not names:
+        raise ValueError("the registration holds no expressions")
+    cams = [cap.rig.camera(c) for c in (cameras or cap.camera_names)]
+    cam_idx = [cap.camera_names.index(c.name) for c in cams]
+    t = template_arrays(reg.template)
+    neutral = names[0] if "neutral" not in names else "neutral"
+    writer = ModelWriter(out, cap.rig.lights.directions, cap.rig.lights.solid_angles, cams,
+                         [(n, cap.expressions[cap.expression_index(n)].category) for n in names],
+                         t["triangles"], template=reg.template, neutral=neutral, overwrite=overwrite)
+    scene = None
+    jobs = [(n, cam) for n in names for cam in cams]
+    it = progress(jobs) if progress is not None else jobs
+    geometry = {}
+    for name, cam in it:
+        r = reg.expression(name)
+        if name not in geometry:
+            geometry[name] = r
+            if scene is None:
+                scene = MeshScene(r.vertices, t["triangles"])
+            scene.set_vertices(r.vertices)
+        hits, _ = scene.render_hits(cam, spp=1)
+        sel = np.flatnonzero(hits.valid)
+        field = reg.field(name, cam.name)  # (L, H, W, 3)
+        rows, cols = sel // cam.width, sel % cam.width
+        rf = field[:, rows, cols].transpose(1, 0, 2)
+        writer.write_field(name, cam, np.stack([rows, cols], 1), hits.tri[sel], hits.bary[sel], hits.t[sel], rf)
+    for name in names:
+        r = geometry[name]
+        writer.add_geometry(r.vertices, r.visible[cam_idx], r.status, r.eye_centres, r.teeth, r.head_pose)
+    sources = np.stack([geometry[n].vertices for n in names])
+    blend = BlendModel.fit(sources, names.index(neutral), t["triangles"], fiducial_mask=t["fiducial"],
+                           regions=t["regions"] if (culling and t["regions"]) else None)
+    cats = {n: cap.expressions[cap.expression_index(n)].category for n in names}
+    writer.extra["references"] = {
+        "eyes": pick_reference(names, cats, ("eyes_wide", "wide"), neutral),
+        "teeth": pick_reference(names, cats, ("teeth_bared", "teeth"), neutral),
+    }
+    writer.extra["source"] = {"capture": str(Path(capture).resolve()), "registration": str(reg.root.resolve())}
+    return writer.finish(blend)

@@ -1,0 +1,113 @@
+"""Render chunks (paper §6.2–6.3): which reflectance fields a frame needs, with what per-vertex weights.
+
+For a target (template vertices in world), per-vertex expression weights and a render
+camera, :func:`plan_frame` computes for every vertex ``v`` and source expression ``s``
+with a non-zero weight:
+
+* the local rotation ``R_ts`` (target pose → source pose; Horn on the vertex's
+  2-ring neighbourhood, :func:`mifacerf.blending.local_rotations`);
+* the render camera's inverse look vector (−optical axis; the paper's choice, the same
+  for every vertex, so a capture camera rendering a captured expression samples
+  exactly itself), rotated by ``R_ts`` and turned into 1–3 capture-camera weights (:class:`.views.ViewSampler`); cameras in which ``v``
+  is not visible in ``s`` are dropped and the rest renormalised; if none of them sees
+  ``v``, the visible camera nearest in direction is used; if no camera sees ``v`` in
+  ``s``, the pair contributes nothing (the renderer renormalises per pixel).
+
+A :class:`RenderChunk` is one (source expression, capture camera) field with its
+per-vertex weight = expression weight × camera weight. Chunks whose weights are all
+zero are never created, so their fields are never loaded.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera
+from .views import ViewSampler
+
+
+@dataclass
+class RenderChunk:
+    """One reflectance field of a frame: source expression ``s``, capture camera ``c``, and the
+    per-vertex weights (T,) it is accumulated with (expression weight × camera weight)."""
+
+    frame: int
+    s: int
+    c: int
+    weights: np.ndarray
+
+
+@dataclass
+class FramePlan:
+    """Everything a frame's render needs besides the fields themselves.
+
+    ``target`` (T, 3) world; ``expression_weights`` (T, S) dense; ``rotations`` {s: (T, 3, 3)}
+    for every source used (identity where the weight is 0); ``chunks``; ``unseen`` (T, S) bool:
+    (vertex, source) pairs with weight but no camera seeing the vertex.
+    """
+
+    frame: int
+    target: np.ndarray
+    expression_weights: np.ndarray
+    rotations: dict
+    chunks: list = field(default_factory=list)
+    unseen: np.ndarray | None = None
+
+    @property
+    def sources(self) -> list[int]:
+        return sorted(self.rotations)
+
+
+def plan_frame(model, target: np.ndarray, expression_weights: np.ndarray, camera: Camera, frame: int = 0,
+               neighbourhoods=None, weight_eps: float = 1e-6) -> FramePlan:
+    """Plan one frame. ``expression_weights`` (T, S) dense, rows ≥ 0 summing to 1 (validated)."""
+    from ..blending import local_rotations
+
+    T, S = model.n_vertices, len(model.expressions)
+    target = np.asarray(target, np.float64)
+    W = np.asarray(expression_weights, np.float64)
+    if target.shape != (T, 3):
+        raise ValueError(f"target mesh has shape {target.shape}; the model's template has ({T}, 3)")
+    if not np.isfinite(target).all():
+        raise ValueError("target mesh has NaN/Inf vertices")
+    if W.shape != (T, S):
+        raise ValueError(f"expression weights have shape {W.shape}, expected ({T}, {S})")
+    if not np.isfinite(W).all() or (W < -1e-9).any():
+        raise ValueError("expression weights must be finite and non-negative")
+    W = np.where(W > weight_eps, W, 0.0)
+    W /= np.maximum(W.sum(1, keepdims=True), 1e-300)
+    nb = neighbourhoods if neighbourhoods is not None else model.blend.nbhd
+    sampler = ViewSampler.from_cameras(model.cameras)
+    cam_dirs = np.stack([-c.forward for c in model.cameras])
+    view = np.broadcast_to(-camera.forward, target.shape)
+    plan = FramePlan(frame, target, W, {}, [], np.zeros((T, S), bool))
+    C = len(model.cameras)
+    for s in np.flatnonzero(W.max(0) > 0):
+        used = W[:, s] > 0
+        R = np.broadcast_to(np.eye(3), (T, 3, 3)).copy()
+        R[used] = local_rotations(target, model.vertices[s], nb)[used]
+        plan.rotations[int(s)] = R
+        rv = np.einsum("tij,tj->ti", R, view)  # the novel view in the source's local pose
+        idx, w = sampler.weights(rv[used])
+        vis = model.visible[s][:, used].T  # (n_used, C)
+        cw = np.zeros((used.sum(), C))
+        np.add.at(cw, (np.arange(len(idx))[:, None].repeat(3, 1), idx), w)
+        cw *= vis
+        tot = cw.sum(1)
+        lost = tot <= 1e-12
+        if lost.any():  # none of the interpolating cameras sees the vertex: nearest visible camera
+            score = np.where(vis[lost], rv[used][lost] @ cam_dirs.T, -np.inf)
+            best = score.argmax(1)
+            ok = np.isfinite(score.max(1))
+            cw[np.flatnonzero(lost)[ok], best[ok]] = 1.0
+            rows = np.flatnonzero(used)[np.flatnonzero(lost)[~ok]]
+            plan.unseen[rows, s] = True
+            tot = cw.sum(1)
+        cw /= np.maximum(tot, 1e-300)[:, None]
+        for c in range(C):
+            a = np.zeros(T)
+            a[used] = W[used, s] * cw[:, c]
+            if a.max() > weight_eps and model.has_field(int(s), c):
+                plan.chunks.append(RenderChunk(frame, int(s), c, a))
+    return plan

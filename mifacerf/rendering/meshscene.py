@@ -1,0 +1,117 @@
+"""A triangle mesh in its own Mitsuba scene, for ray casting (visibility, rasterisation, renders).
+
+Vertices are updated in place (``mi.traverse``), so one scene serves every
+expression and frame. Hits are reported as (triangle, barycentrics, distance):
+barycentric ``(b0, b1, b2)`` weights the triangle's vertices ``faces[tri]`` in order.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..jitarrays import to_jit
+from ..camera import Camera, stratified_pixel_samples
+from ..variant import ensure_variant
+
+
+@dataclass
+class Hits:
+    """Ray hits: ``valid`` (N,) bool; ``tri`` (N,) int64 (−1 if none); ``bary`` (N, 3); ``t`` (N,) distance (inf if none)."""
+
+    valid: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    t: np.ndarray
+
+
+class MeshScene:
+    """``vertices`` (V, 3) world, ``faces`` (F, 3) int."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        import drjit as dr
+
+        mi = ensure_variant()
+        self._mi, self._dr = mi, dr
+        self.faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        vertices = np.asarray(vertices, np.float64)
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= len(vertices)):
+            raise ValueError("faces index vertices out of range")
+        self.mesh = mi.Mesh("mesh", len(vertices), len(self.faces))
+        self._params = mi.traverse(self.mesh)
+        self._params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(self.faces.T, dtype=np.uint32)))
+        self.set_vertices(vertices, update=False)
+        self._params.update()
+        self.scene = mi.load_dict({"type": "scene", "mesh": self.mesh})
+        self._scene_params = mi.traverse(self.scene)
+
+    def set_vertices(self, vertices: np.ndarray, update: bool = True) -> None:
+        v = np.asarray(vertices, np.float64)
+        if v.shape != (self.mesh.vertex_count(), 3):
+            raise ValueError(f"expected ({self.mesh.vertex_count()}, 3) vertices, got {v.shape}")
+        if not np.isfinite(v).all():
+            bad = np.flatnonzero(~np.isfinite(v).all(1))
+            raise ValueError(f"{len(bad)} vertex position(s) are NaN/Inf (first: vertex {bad[0]})")
+        self.vertices = v
+        flat = self._dr.ravel(to_jit(self._mi.Point3f, v.T))
+        if update:
+            self._scene_params["mesh.vertex_positions"] = flat
+            self._scene_params.update()
+        else:
+            self._params["vertex_positions"] = flat
+
+    def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
+        """Closest hits of rays (origins (N, 3) or (3,), unit directions (N, 3)), world frame."""
+        mi = self._mi
+        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(origins, np.float32), d.shape)
+        ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
+        pi = self.scene.ray_intersect_preliminary(ray)
+        valid = np.asarray(pi.is_valid()).astype(bool)
+        uv = np.asarray(pi.prim_uv)
+        uv = uv.T if uv.shape[0] == 2 else uv
+        tri = np.where(valid, np.asarray(pi.prim_index).astype(np.int64), -1)
+        bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
+        bary[~valid] = 0.0
+        t = np.where(valid, np.asarray(pi.t), np.inf)
+        return Hits(valid, tri, bary, t)
+
+    def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+        """(N,) True where the segment from each point (N, 3) to its target ((N, 3) or (3,)) hits the mesh.
+
+        The segment is shortened by ``eps`` metres at both ends (self-intersection).
+        """
+        mi = self._mi
+        p = np.asarray(points, np.float64).reshape(-1, 3)
+        q = np.broadcast_to(np.asarray(targets, np.float64), p.shape)
+        d = q - p
+        dist = np.linalg.norm(d, axis=1)
+        d = d / np.maximum(dist, 1e-12)[:, None]
+        o = p + eps * d
+        ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
+        ray.maxt = to_jit(mi.Float, np.maximum(dist - 2 * eps, 0))
+        return np.asarray(self.scene.ray_test(ray)).astype(bool)
+
+    def render_hits(self, camera: Camera, spp: int = 1, seed: int = 0) -> tuple[Hits, np.ndarray]:
+        """Hits of a camera's pixel samples: (hits of H*W*spp samples, sample pixel positions (N, 2)).
+
+        ``spp = 1`` traces exactly through pixel centres; more samples are stratified.
+        """
+        if spp == 1:
+            jj, ii = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+            uv = np.stack([jj, ii], -1).reshape(-1, 2).astype(np.float64)
+        else:
+            uv = stratified_pixel_samples(camera.width, camera.height, spp, seed)
+        o, d = camera.pixel_rays(uv)
+        return self.trace(o, d), uv
+
+    def visible_from(self, points: np.ndarray, camera: Camera, tol: float = 1e-3) -> np.ndarray:
+        """(N,) visibility of surface points (N, 3) from a camera centre: in front, inside the image, unoccluded."""
+        uv, z = camera.project(points)
+        inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
+        inside &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
+        inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5)
+        vis = np.zeros(len(points), bool)
+        if inside.any():
+            vis[inside] = ~self.occluded(points[inside], camera.centre, eps=tol)
+        return vis
