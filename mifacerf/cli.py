@@ -1,16 +1,45 @@
-"""The ``mifacerf`` command line. Sub-commands import their modules lazily."""
+"""The ``mifacerf`` command line.
+
+Commands live next to the code they drive and are imported only when used, so
+``mifacerf --help`` stays fast: :data:`LAZY_COMMANDS` maps a command name to
+``"module:attribute"``.
+"""
 from __future__ import annotations
+
+import importlib
 
 import click
 
+LAZY_COMMANDS = {
+    "synth": "mifacerf.synthetic.cli:synth_cmd",
+    "truth": "mifacerf.synthetic.cli:truth_cmd",
+    "build": "mifacerf.rendering.cli:build_cmd",
+    "render": "mifacerf.rendering.cli:render_cmd",
+    "demo": "mifacerf.demo:demo_cmd",
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+class LazyGroup(click.Group):
+    """A click group whose sub-commands are imported on first use."""
+
+    def list_commands(self, ctx):
+        return sorted(set(super().list_commands(ctx)) | set(LAZY_COMMANDS))
+
+    def get_command(self, ctx, name):
+        if name in LAZY_COMMANDS:
+            module, attr = LAZY_COMMANDS[name].split(":")
+            return getattr(importlib.import_module(module), attr)
+        return super().get_command(ctx, name)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mifacerf")
 def main():
-    """Animatable, relightable facial reflectance fields on Mitsuba 3."""
+    """Animatable, relightable facial reflectance fields on Mitsuba 3.
+
+    The pipeline: synth (or capture) → register → build → render; demo runs it all.
+    """
 
 
-if __name__ == "__main__":
-    main()
 from mifacerf.capture.cli import capture_cmd, calibrate_group  # noqa: E402
 main.add_command(capture_cmd); main.add_command(calibrate_group)  # noqa: E702

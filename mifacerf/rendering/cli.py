@@ -1,0 +1,47 @@
+"""CLI: ``mifacerf build`` (capture + registration → model) and ``mifacerf render``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("build")
+@click.argument("capture", type=click.Path(exists=True, file_okay=False))
+@click.option("-o", "--out", required=True, type=click.Path(file_okay=False), help="The model folder to write.")
+@click.option("--registration", type=click.Path(exists=True, file_okay=False), default=None,
+              help="Registration folder (default: CAPTURE/registration).")
+@click.option("--expressions", default=None, help="Comma-separated subset of registered expressions.")
+@click.option("--no-culling", is_flag=True, help="Blend without §5.1 coherent culling.")
+@click.option("--overwrite", is_flag=True)
+def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
+    """Assemble the relightable morphable model from a registered capture."""
+    from tqdm.auto import tqdm
+
+    from ..capture_folder import CaptureError
+    from ..registered import RegistrationError
+    from .build import build_model
+    from .model import ModelError
+
+    try:
+        path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
+                           overwrite=overwrite, culling=not no_culling,
+                           progress=lambda jobs: tqdm(jobs, desc="build", unit="field"))
+    except (CaptureError, RegistrationError, ModelError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"model written: {path.parent}")
+
+
+@click.command("render")
+@click.argument("scene_or_model", type=click.Path(exists=True))
+@click.option("-o", "--output", default="render.exr", show_default=True)
+@click.option("-D", "defines", multiple=True, help="Scene parameter, NAME=VALUE (scene files).")
+def render_cmd(scene_or_model, output, defines):
+    """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
+    from .scenefile import render_scene_file
+
+    try:
+        out = render_scene_file(scene_or_model, output, dict(d.split("=", 1) for d in defines))
+    except (KeyError, ValueError, FileNotFoundError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"wrote {out}")

@@ -1,0 +1,67 @@
+"""CLI: ``mifacerf synth`` (photograph a synthetic subject) and ``mifacerf truth`` (path-traced ground truth)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("synth")
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option("--preset", default="draft", show_default=True, type=click.Choice(["tiny", "draft", "paper"]),
+              help="Rig size: tiny (tests, seconds), draft (demo, minutes), paper (480 lights, 60 expressions).")
+@click.option("--subject", "subject_folder", type=click.Path(exists=True, file_okay=False), default=None,
+              help="A folder with your own subject (neutral + expression meshes); default: the embedded head.")
+@click.option("--expressions", default=None, help="Comma-separated expression names (default: the preset's).")
+@click.option("--overwrite", is_flag=True, help="Replace a complete capture already in OUT.")
+@click.option("--contact-sheet/--no-contact-sheet", default=True, show_default=True,
+              help="Also write OUT/contact_sheet.png.")
+def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet):
+    """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."""
+    from ..capture_folder import CaptureError
+    from .synth import synthesize
+
+    try:
+        cap = synthesize(out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite)
+    except (CaptureError, ValueError, OSError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    click.echo(f"capture written to {cap}")
+    if contact_sheet:
+        from tqdm.auto import tqdm
+
+        from ..contact_sheet import contact_sheet as sheet
+
+        png = sheet(cap, Path(out) / "contact_sheet.png", progress=lambda x: tqdm(x, desc="contact sheet"))
+        click.echo(f"contact sheet: {png}")
+
+
+@click.command("truth")
+@click.argument("out", type=click.Path(exists=True, file_okay=False))
+@click.option("--expression", default="neutral", show_default=True,
+              help="An expression name from OUT/truth/truth.json, or name=weight,... to blend parameter vectors.")
+@click.option("--params", default=None, help="A parameter vector as control=value,... (overrides --expression).")
+@click.option("--camera", default=None, help="A capture camera name (default: the second camera).")
+@click.option("--yaw", type=float, default=None, help="Novel view: camera yaw in degrees (with --pitch).")
+@click.option("--pitch", type=float, default=0.0, show_default=True)
+@click.option("--env", "env", default="sky", show_default=True,
+              help="Environment: sky, sunsky, interior, gradient, or a lat-long .exr/.hdr path.")
+@click.option("--spp", type=int, default=256, show_default=True)
+@click.option("--size", type=int, default=None, help="Image size (default: the capture camera's).")
+@click.option("-o", "--output", default=None, help="Output .exr (a .png is written beside it).")
+def truth_cmd(out, expression, params, camera, yaw, pitch, env, spp, size, output):
+    """Path-trace the synthetic subject of OUT (any expression, camera, environment) with alpha."""
+    from ..imageio import write_exr, write_png
+    from .truth_scene import TruthRenderer
+
+    tr = TruthRenderer.from_synth(out)
+    try:
+        p = tr.params_from_spec(expression if params is None else params, is_params=params is not None)
+        cam = tr.camera(camera, yaw, pitch, size)
+        img = tr.render(p, cam, env, spp=spp)
+    except (KeyError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    output = Path(output or Path(out) / "truth_renders" / f"{expression.replace('=', '-')}_{cam.name}_{Path(env).stem}.exr")
+    output.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(output, img)
+    write_png(output.with_suffix(".png"), img)
+    click.echo(f"wrote {output} and {output.with_suffix('.png')}")

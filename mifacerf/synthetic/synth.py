@@ -1,0 +1,139 @@
+"""``mifacerf synth``: photograph a synthetic subject through the simulated light stage.
+
+Writes ``OUT/capture/`` — a capture folder exactly as a real rig would (docs/capture-format.md),
+including the hand-made registration inputs a user would supply — and ``OUT/truth/``,
+the ground truth that only evaluation may read::
+
+    OUT/truth/truth.json                 subject, controls, preset, expressions with their parameter vectors
+    OUT/truth/expressions/<name>.npz     params, skin_vertices (V, 3), dots (D, 3), template_vertices (T, 3),
+                                         part transforms (rigid parts, 4x4 each)
+
+Images are rendered by :func:`mifacerf.synthetic.olat.render_olat` (one Dr.Jit
+wavefront per batch of lights) and written while the next camera renders. An
+interrupted run resumes: (expression, camera) pairs whose images are all present are
+skipped (every image is written atomically, so a present file is a whole file); the
+manifest is written last.
+"""
+from __future__ import annotations
+
+import json
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import CaptureError, CaptureWriter, ExpressionEntry, sha256_file, write_json_atomic
+from ..rig import Rig, RigPreset, preset as get_preset
+from .olat import render_olat
+
+TRUTH_FORMAT = "mifacerf.truth"
+
+
+def load_subject(subject_folder: str | os.PathLike | None = None):
+    """The default procedural subject, or a user's blendshape subject from a folder."""
+    from . import default_subject, load_mesh_subject
+
+    return default_subject() if subject_folder is None else load_mesh_subject(subject_folder)
+
+
+def choose_expressions(subject, preset: RigPreset, names: list[str] | None = None):
+    """The preset's expressions (or the named ones, in that order)."""
+    exprs = subject.presets(preset.name)
+    if names:
+        by_name = {e.name: e for e in subject.presets("paper")}
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise ValueError(f"unknown expression(s) {', '.join(unknown)}; known: {', '.join(by_name)}")
+        exprs = [by_name[n] for n in names]
+    return exprs
+
+
+def write_truth_expression(truth_dir: Path, name: str, params: np.ndarray, pose) -> None:
+    path = truth_dir / "expressions" / f"{name}.npz"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    parts = {f"part_{k}": np.asarray(p.transform) for k, p in pose.parts.items()
+             if getattr(p, "transform", None) is not None}
+    tmp = path.with_name(f".{name}.tmp.npz")
+    np.savez_compressed(tmp, params=np.asarray(params), skin_vertices=np.asarray(pose.skin_vertices, np.float32),
+                        dots=np.asarray(pose.dots), template_vertices=np.asarray(pose.template_vertices), **parts)
+    os.replace(tmp, path)
+
+
+def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=None, expressions=None,
+               overwrite: bool = False, progress: bool = True, rig: Rig | None = None, seed: int = 0) -> Path:
+    """Render the capture of a synthetic subject into ``out``; returns the capture folder."""
+    from tqdm.auto import tqdm
+
+    from . import SubjectScene
+    from .hand_inputs import write_hand_inputs
+
+    pre = get_preset(preset)
+    out = Path(out)
+    cap_dir, truth_dir = out / "capture", out / "truth"
+    if (cap_dir / "manifest.json").exists() and not overwrite:
+        raise CaptureError(f"{cap_dir}: already holds a complete capture; use --overwrite or another folder")
+    subject = load_subject(subject_folder)
+    rig = rig or pre.rig()
+    exprs = choose_expressions(subject, pre, expressions)
+    writer = CaptureWriter(cap_dir, rig, [ExpressionEntry(e.name, e.category) for e in exprs],
+                           extra={"subject": {"name": getattr(subject, "name", "synthetic"), "synthetic": True},
+                                  "preset": pre.name}, overwrite=overwrite)
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(truth_dir / "truth.json", {
+        "format": TRUTH_FORMAT, "version": 1, "preset": pre.name,
+        "subject": {"name": getattr(subject, "name", "synthetic"),
+                    "folder": None if subject_folder is None else str(Path(subject_folder).resolve())},
+        "controls": [c.name for c in subject.controls],
+        "expressions": [{"name": e.name, "category": e.category, "params": np.asarray(e.params).tolist()}
+                        for e in exprs],
+        "dot_radius": float(getattr(subject, "dot_radius", 0.0)),
+    })
+    scene = SubjectScene(subject)
+    lights = rig.lights
+    total = len(exprs) * len(rig.cameras) * len(lights)
+    bar = tqdm(total=total, desc="synth", unit="img", disable=not progress, smoothing=0.05)
+    poses = {}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pending = []
+        for e in exprs:
+            pose = subject.pose(e.params)
+            poses[e.name] = pose
+            write_truth_expression(truth_dir, e.name, e.params, pose)
+            posed = False
+            for cam in rig.cameras:
+                paths = [writer.image_path(e.name, cam.name, l) for l in range(len(lights))]
+                if all(p.exists() for p in paths):  # resumed run: this take is already on disk
+                    for p in paths:
+                        writer.checksums[p.relative_to(writer.root).as_posix()] = sha256_file(p)
+                    bar.update(len(lights))
+                    continue
+                if not posed:
+                    scene.set_pose(pose)
+                    posed = True
+                imgs = render_olat(scene.scene, cam, lights.directions, lights.irradiance, spp=pre.spp,
+                                   seed=seed)
+                for f in pending:
+                    f.result()
+                pending = [pool.submit(_write_all, writer, e.name, cam.name, imgs, bar)]
+        for f in pending:
+            f.result()
+    bar.close()
+    write_hand_inputs(cap_dir, subject, exprs, poses, rig, seed=seed)
+    writer.finish()
+    return cap_dir
+
+
+def _write_all(writer: CaptureWriter, expression: str, camera: str, images: np.ndarray, bar) -> None:
+    for l, img in enumerate(images):
+        writer.write_image(expression, camera, l, img)
+        bar.update(1)
+
+
+def read_truth(out_or_truth: str | os.PathLike) -> dict:
+    """``truth.json`` of a synth output folder (or of its truth/ folder)."""
+    p = Path(out_or_truth)
+    path = p / "truth.json" if (p / "truth.json").exists() else p / "truth" / "truth.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no ground truth here (is this a 'mifacerf synth' output?)")
+    return json.loads(path.read_text())

@@ -1,0 +1,130 @@
+"""Ground truth of a synth output: any parameter vector, camera and environment, path-traced.
+
+Evaluation's window onto the synthetic subject (``OUT/truth`` and the subject's generator):
+nothing in registration, model building or rendering may use it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..capture_folder import Capture
+from ..environment import Environment, resolve
+from .synth import load_subject, read_truth
+from .truth import render_truth
+
+
+class TruthRenderer:
+    """Renders the subject of a ``mifacerf synth`` output folder.
+
+    ``subject``: the synthetic subject; ``truth``: ``truth.json``; ``cameras``: the capture's cameras.
+    """
+
+    def __init__(self, subject, truth: dict, cameras: list[Camera]):
+        self.subject = subject
+        self.truth = truth
+        self.cameras = cameras
+        self.controls = [c.name for c in subject.controls]
+        self.expressions = {e["name"]: np.asarray(e["params"], np.float64) for e in truth["expressions"]}
+        self._scenes: dict[str, object] = {}
+
+    @classmethod
+    def from_synth(cls, out) -> "TruthRenderer":
+        out = Path(out)
+        truth = read_truth(out)
+        cap = Capture(out / "capture")
+        return cls(load_subject(truth["subject"].get("folder")), truth, cap.rig.cameras)
+
+    # ------------------------------------------------------------- parameters
+    def params_from_spec(self, spec: str, is_params: bool = False) -> np.ndarray:
+        """``name`` | ``name=w,name=w`` (a blend of captured parameter vectors) | ``control=value,...``."""
+        if is_params:
+            named = dict(_pairs(spec))
+            unknown = [k for k in named if k not in self.controls]
+            if unknown:
+                raise KeyError(f"unknown control(s) {', '.join(unknown)}; controls: {', '.join(self.controls)}")
+            return self.subject.params(**named)
+        if "=" not in spec:
+            if spec not in self.expressions:
+                raise KeyError(f"unknown expression {spec!r}; captured: {', '.join(self.expressions)}")
+            return self.expressions[spec].copy()
+        return self.blend(dict(_pairs(spec)))
+
+    def blend(self, weights: dict[str, float]) -> np.ndarray:
+        """The weighted sum of captured parameter vectors (weights normalised to sum to 1)."""
+        unknown = [k for k in weights if k not in self.expressions]
+        if unknown:
+            raise KeyError(f"unknown expression(s) {', '.join(unknown)}")
+        total = sum(weights.values())
+        if total <= 0:
+            raise ValueError("blend weights must have a positive sum")
+        return sum(w / total * self.expressions[k] for k, w in weights.items())
+
+    # ---------------------------------------------------------------- cameras
+    def camera(self, name: str | None = None, yaw: float | None = None, pitch: float = 0.0,
+               size: int | None = None) -> Camera:
+        """A capture camera by name, or a novel pinhole camera at (yaw, pitch) degrees on the capture ring."""
+        base = self.cameras[min(1, len(self.cameras) - 1)]
+        if yaw is None:
+            cam = base if name is None else next((c for c in self.cameras if c.name == name), None)
+            if cam is None:
+                raise KeyError(f"no camera {name!r}; cameras: {', '.join(c.name for c in self.cameras)}")
+        else:
+            cam = novel_camera(self.cameras, yaw, pitch)
+        return cam if size is None else cam.resized(size, size)
+
+    # ----------------------------------------------------------------- render
+    def scene(self, env: Environment):
+        from . import SubjectScene
+
+        if env.name not in self._scenes:
+            self._scenes[env.name] = SubjectScene(self.subject, extra={"env": env.mitsuba_dict()})
+        return self._scenes[env.name]
+
+    def render(self, params: np.ndarray, camera: Camera, env: str | Environment = "sky", spp: int = 256,
+               seed: int = 0) -> np.ndarray:
+        """(H, W, 4) RGBA path-traced ground truth."""
+        env = resolve(env) if isinstance(env, str) else env
+        sc = self.scene(env)
+        sc.set_pose(self.subject.pose(np.asarray(params, np.float64)))
+        return render_truth(sc.scene, camera, spp=spp, seed=seed)
+
+
+def novel_camera(cameras: list[Camera], yaw: float, pitch: float, name: str | None = None) -> Camera:
+    """A distortion-free camera on the capture cameras' ring (same distance, target and focal length)."""
+    ref = cameras[0]
+    centres = np.stack([c.centre for c in cameras])
+    fwd = np.stack([c.forward for c in cameras])
+    # the common target: least-squares intersection of the optical axes
+    A = sum(np.eye(3) - np.outer(f, f) for f in fwd)
+    b = sum((np.eye(3) - np.outer(f, f)) @ c for f, c in zip(fwd, centres))
+    target = np.linalg.solve(A, b)
+    dist = float(np.mean(np.linalg.norm(centres - target, axis=1)))
+    y, p = np.radians(yaw), np.radians(pitch)
+    eye = target + dist * np.array([np.sin(y) * np.cos(p), np.sin(p), np.cos(y) * np.cos(p)])
+    focal = float(np.mean([c.K[0, 0] for c in cameras]))
+    return Camera.look_at(name or f"yaw{yaw:+.0f}_pitch{pitch:+.0f}", eye, target, width=ref.width,
+                          height=ref.height, focal=focal)
+
+
+def _pairs(spec: str):
+    for item in spec.split(","):
+        if not item.strip():
+            continue
+        if "=" not in item:
+            raise ValueError(f"expected name=value in {spec!r}")
+        k, v = item.split("=", 1)
+        yield k.strip(), float(v)
+
+
+def truth_expression(out, name: str) -> dict:
+    """The stored truth arrays of one captured expression (evaluation only)."""
+    path = Path(out) / "truth" / "expressions" / f"{name}.npz"
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no truth for expression {name!r}")
+    return dict(np.load(path))
+
+
+__all__ = ["TruthRenderer", "novel_camera", "truth_expression"]
