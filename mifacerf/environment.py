@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .imageio import read_hdr_or_exr, write_exr
-from .jitarrays import to_jit
+from .jitarrays import from_jit, to_jit
 
 
 class EnvironmentError_(ValueError):
@@ -159,7 +159,7 @@ def evaluate_emitter(emitter, directions: np.ndarray, chunk: int = 1 << 20) -> n
         si = dr.zeros(mi.SurfaceInteraction3f, len(d))
         si.wi = -to_jit(mi.Vector3f, d.T)
         val = emitter.eval(si)
-        out[s:s + chunk] = np.asarray(val).reshape(3, -1).T if np.asarray(val).shape[0] == 3 else np.asarray(val)
+        out[s:s + chunk] = from_jit(val)
     return out
 
 

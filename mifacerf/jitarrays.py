@@ -32,3 +32,11 @@ def to_jit(jit_type, array):
              dr.VarType.UInt32: np.uint32, dr.VarType.Int32: np.int32, dr.VarType.Bool: np.bool_,
              dr.VarType.UInt64: np.uint64, dr.VarType.Int64: np.int64}[dr.type_v(jit_type)]
     return jit_type(aligned(array, dtype))
+
+
+def from_jit(vec) -> np.ndarray:
+    """A Dr.Jit array → NumPy; vector types (Color3f, Vector3f, …) of width N become (N, components)."""
+    import drjit as dr
+
+    arr = np.asarray(vec)
+    return arr.T.copy() if dr.depth_v(vec) > 1 else arr

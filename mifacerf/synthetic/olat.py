@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..jitarrays import to_jit
+from ..jitarrays import from_jit, to_jit
 from ..camera import Camera, stratified_pixel_samples
 from ..variant import ensure_variant
 
@@ -84,8 +84,7 @@ def _batch_radiance(scene, hits: PrimaryHits, dirs: np.ndarray) -> np.ndarray:
     value = bsdf.eval(mi.BSDFContext(), si, si.to_local(wi))
     lit = ~scene.ray_test(si.spawn_ray(wi))
     value = dr.select(lit, value, 0.0)
-    arr = np.asarray(value)
-    return arr.T if arr.shape[0] == 3 else arr
+    return from_jit(value)
 
 
 def render_olat(scene, camera: Camera, directions: np.ndarray, irradiance: np.ndarray | None = None,

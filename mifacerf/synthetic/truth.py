@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera
+from ..jitarrays import from_jit
 from ..variant import ensure_variant
 from .olat import camera_rays
 
@@ -41,8 +42,7 @@ def render_truth(scene, camera: Camera, spp: int = 256, seed: int = 0, max_depth
         sampler = mi.load_dict({"type": "independent"})
         sampler.seed(seed * 104729 + pass_index, h * w * n)
         spec, valid, _ = integrator.sample(scene, sampler, ray, None, mi.Bool(True))
-        rgb = np.asarray(spec)
-        rgb = rgb.T if rgb.shape[0] == 3 else rgb
+        rgb = from_jit(spec)
         hit = np.asarray(scene.ray_intersect(ray).is_valid()).astype(np.float64)
         rgb = np.where(hit[:, None] > 0, rgb, 0.0)
         acc[:, :3] += rgb.reshape(h * w, n, 3).sum(axis=1)

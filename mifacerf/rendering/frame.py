@@ -1,0 +1,172 @@
+"""A lit frame: everything needed to shade hits on the target face, as Dr.Jit arrays.
+
+:class:`LitFrame` holds, for every render chunk (source expression ``s``, capture
+camera ``c``) of a frame, the chunk's lit image in camera ``c``'s pixels (RGB +
+coverage, from :func:`.relight.lit_texels`), its texel depth map, its per-vertex
+weights, the source geometry and camera ``c``'s calibration — all concatenated so
+that :meth:`LitFrame.shade` is one Dr.Jit kernel with a symbolic loop over chunks,
+the same compiled code for any frame. The Python API renderer and the Mitsuba
+integrator plugin both call :meth:`LitFrame.shade`.
+
+Shading a hit (triangle ``tri``, barycentrics ``b`` on the *target* mesh): for each
+chunk, ``p_s = Σ_k b_k V_s[tri_k]`` (the same surface point in the source
+geometry), projected into camera ``c`` with its lens distortion; the lit image is
+read there bilinearly (colour / coverage) if ``p_s`` is no further than
+``depth_tolerance`` behind the surface camera ``c`` saw (the smallest depth of the
+2x2 texels around it); the chunk's weight is ``a = Σ_k b_k a_{tri_k}``. Result:
+Σ a·colour / Σ a over the chunks that see the point; where none does, over the
+chunks regardless of the depth test (documented fall-back); where no chunk covers
+the point at all, ``covered`` is False.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..jitarrays import to_jit
+from ..variant import ensure_variant
+
+CAM_PARAMS = 24  # R (9), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3, width, height, pad
+
+
+def camera_params(cam) -> np.ndarray:
+    p = np.zeros(CAM_PARAMS)
+    p[0:9] = cam.R.reshape(-1)
+    p[9:12] = cam.t
+    p[12:16] = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+    p[16:21] = cam.dist[:5]
+    p[21:23] = cam.width, cam.height
+    return p
+
+
+class LitFrame:
+    """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.
+
+    ``target`` (T, 3) and ``triangles`` (F, 3): the target mesh; ``chunks``: list of
+    dicts with keys ``s``, ``c``, ``weights`` (T,), ``image`` (H, W, 4) lit RGB + coverage,
+    ``depth`` (H, W), ``camera`` (a :class:`~mifacerf.camera.Camera`); ``sources`` {s: (T, 3)}.
+    """
+
+    def __init__(self, target: np.ndarray, triangles: np.ndarray, chunks: list[dict], sources: dict,
+                 depth_tolerance: float = 0.004):
+        mi = ensure_variant()
+        self.mi = mi
+        self.n_chunks = len(chunks)
+        self.n_vertices = len(target)
+        self.triangles_np = np.asarray(triangles, np.int64)
+        self.target_np = np.asarray(target, np.float64)
+        self.triangles = to_jit(mi.UInt32, self.triangles_np.reshape(-1))
+        self.target = to_jit(mi.Float, self.target_np.reshape(-1))
+        self.depth_tolerance = float(depth_tolerance)
+        src_ids = sorted(sources)
+        src_offset = {s: i * len(target) * 3 for i, s in enumerate(src_ids)}
+        self.sources = to_jit(mi.Float, np.concatenate([np.asarray(sources[s], np.float64).reshape(-1)
+                                                        for s in src_ids]) if src_ids else np.zeros(3))
+        img_parts, depth_parts, w_parts, table = [], [], [], []
+        img_off = 0
+        for i, ch in enumerate(chunks):
+            h, w = ch["image"].shape[:2]
+            img_parts.append(np.asarray(ch["image"], np.float32).reshape(-1))
+            depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
+            w_parts.append(np.asarray(ch["weights"], np.float32))
+            row = np.zeros(CAM_PARAMS + 3)
+            row[:CAM_PARAMS] = camera_params(ch["camera"])
+            row[CAM_PARAMS] = img_off  # offset of the chunk's pixels (in pixels)
+            row[CAM_PARAMS + 1] = src_offset[ch["s"]]
+            row[CAM_PARAMS + 2] = i * len(target)
+            table.append(row)
+            img_off += h * w
+        if img_off >= 2 ** 30:
+            raise ValueError("frame too large: the lit images exceed 2^30 pixels")
+        self.stride = CAM_PARAMS + 3
+        self.table = to_jit(mi.Float, np.concatenate(table) if table else np.zeros(self.stride))
+        self.images = to_jit(mi.Float, np.concatenate(img_parts) if img_parts else np.zeros(4))
+        self.depths = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
+        self.weights = to_jit(mi.Float, np.concatenate(w_parts) if w_parts else np.zeros(1))
+
+    # ------------------------------------------------------------------ kernel
+    def shade(self, tri, bary, active=True):
+        """Shade hits: ``tri`` (UInt32), ``bary`` (Vector3f, b0 b1 b2) → (Color3f, covered, fell_back).
+
+        ``covered``: some chunk saw the point; ``fell_back``: only without the depth test.
+
+        A Dr.Jit function (traceable inside Mitsuba kernels): a symbolic loop over chunks.
+        """
+        import drjit as dr
+
+        mi = self.mi
+        Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
+        active = mi.Bool(active)
+        vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
+        b = [bary.x, bary.y, bary.z]
+        n = dr.width(tri)
+        stride = self.stride
+        tol = dr.opaque(Float, self.depth_tolerance)
+        n_chunks = dr.opaque(UInt32, self.n_chunks)
+
+        def cond(i, *_):
+            return i < n_chunks
+
+        def body(i, r, g, bl, wsum, r2, g2, b2, wsum2):
+            base = i * stride
+
+            def P(k):
+                return dr.gather(Float, self.table, base + k, active)
+
+            src = UInt32(P(CAM_PARAMS + 1))
+            woff = UInt32(P(CAM_PARAMS + 2))
+            ioff = UInt32(P(CAM_PARAMS))
+            a = Float(0)
+            p = [Float(0), Float(0), Float(0)]
+            for k in range(3):
+                a += b[k] * dr.gather(Float, self.weights, woff + vid[k], active)
+                for d in range(3):
+                    p[d] += b[k] * dr.gather(Float, self.sources, src + vid[k] * 3 + d, active)
+            m = [P(j) for j in range(9)]
+            pc = [m[3 * r_] * p[0] + m[3 * r_ + 1] * p[1] + m[3 * r_ + 2] * p[2] + P(9 + r_) for r_ in range(3)]
+            inv_z = dr.rcp(pc[2])
+            x, y = pc[0] * inv_z, pc[1] * inv_z
+            k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
+            r2_ = x * x + y * y
+            radial = 1 + r2_ * (k1 + r2_ * (k2 + r2_ * k3))
+            xd = x * radial + 2 * p1 * x * y + p2 * (r2_ + 2 * x * x)
+            yd = y * radial + p1 * (r2_ + 2 * y * y) + 2 * p2 * x * y
+            u = P(12) * xd + P(14)
+            v = P(13) * yd + P(15)
+            wdt, hgt = P(21), P(22)
+            dist = dr.norm(mi.Vector3f(pc[0], pc[1], pc[2]))
+            x0f, y0f = dr.floor(u), dr.floor(v)
+            fx, fy = u - x0f, v - y0f
+            x0, y0 = Int32(x0f), Int32(y0f)
+            wi, hi = Int32(wdt), Int32(hgt)
+            use = active & (a > 0) & (pc[2] > 0)
+            col = [Float(0), Float(0), Float(0)]
+            cov = Float(0)
+            dmin = Float(dr.inf)
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    xx, yy = x0 + dx, y0 + dy
+                    inside = use & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
+                    pix = ioff + UInt32(dr.select(inside, yy * wi + xx, 0))
+                    wgt = dr.select(inside, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
+                    for ch in range(3):
+                        col[ch] += wgt * dr.gather(Float, self.images, pix * 4 + ch, inside)
+                    cov += wgt * dr.gather(Float, self.images, pix * 4 + 3, inside)
+                    dmin = dr.minimum(dmin, dr.select(inside, dr.gather(Float, self.depths, pix, inside), dr.inf))
+            ok = use & (cov > 1e-3)
+            inv_cov = dr.select(ok, dr.rcp(cov), 0.0)
+            seen = ok & (dist <= dmin + tol)
+            wa = dr.select(ok, a, 0.0)
+            ws = dr.select(seen, a, 0.0)
+            return (i + 1,
+                    r + ws * col[0] * inv_cov, g + ws * col[1] * inv_cov, bl + ws * col[2] * inv_cov, wsum + ws,
+                    r2 + wa * col[0] * inv_cov, g2 + wa * col[1] * inv_cov, b2 + wa * col[2] * inv_cov, wsum2 + wa)
+
+        zeros = [dr.opaque(Float, 0, n) for _ in range(8)]
+        state = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)
+        _, r, g, bl, wsum, r2, g2, b2, wsum2 = state
+        use_depth = wsum > 1e-9
+        wfinal = dr.select(use_depth, wsum, wsum2)
+        inv = dr.select(wfinal > 1e-9, dr.rcp(wfinal), 0.0)
+        colour = mi.Color3f(dr.select(use_depth, r, r2) * inv, dr.select(use_depth, g, g2) * inv,
+                            dr.select(use_depth, bl, b2) * inv)
+        return colour, active & (wfinal > 1e-9), active & ~use_depth & (wsum2 > 1e-9)
