@@ -8,3 +8,9 @@ registration → blending → rendering → evaluation; the synthetic subject an
 its simulated light stage live in :mod:`mifacerf.synthetic`.
 """
 __version__ = "0.1.0"
+
+from .variant import ensure_variant as _ensure_variant
+
+_ensure_variant()
+from . import plugins  # noqa: E402,F401  (registers the Mitsuba plugins by name)
+from .rendering.api import composite, environment_plate, load_model  # noqa: E402,F401

@@ -177,3 +177,24 @@ def stratified_pixel_samples(width: int, height: int, spp: int, seed: int = 0) -
     u = jj[..., None] + offx
     v = ii[..., None] + offy
     return np.stack([u, v], axis=-1).reshape(-1, 2)
+
+
+def ring_camera(cameras: list[Camera], yaw: float, pitch: float, name: str | None = None,
+                size: tuple[int, int] | None = None) -> Camera:
+    """A distortion-free camera on the ring of ``cameras``: same target, distance and focal length.
+
+    The target is the least-squares intersection of the cameras' optical axes;
+    ``yaw`` (about +Y, from +Z towards +X) and ``pitch`` (up) in degrees.
+    """
+    ref = cameras[0]
+    centres = np.stack([c.centre for c in cameras])
+    fwd = np.stack([c.forward for c in cameras])
+    A = sum(np.eye(3) - np.outer(f, f) for f in fwd)
+    b = sum((np.eye(3) - np.outer(f, f)) @ c for f, c in zip(fwd, centres))
+    target = np.linalg.lstsq(A, b, rcond=None)[0]
+    dist = float(np.mean(np.linalg.norm(centres - target, axis=1)))
+    y, p = np.radians(yaw), np.radians(pitch)
+    eye = target + dist * np.array([np.sin(y) * np.cos(p), np.sin(p), np.cos(y) * np.cos(p)])
+    w, h = size or (ref.width, ref.height)
+    focal = float(np.mean([c.K[0, 0] for c in cameras])) * w / ref.width
+    return Camera.look_at(name or f"yaw{yaw:+.0f}_pitch{pitch:+.0f}", eye, target, width=w, height=h, focal=focal)

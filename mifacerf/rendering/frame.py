@@ -84,6 +84,23 @@ class LitFrame:
         self.weights = to_jit(mi.Float, np.concatenate(w_parts) if w_parts else np.zeros(1))
 
     # ------------------------------------------------------------------ kernel
+    def barycentric(self, tri, p):
+        """Barycentrics (Vector3f) of world points ``p`` (Point3f) in target triangles ``tri`` (UInt32)."""
+        import drjit as dr
+
+        mi = self.mi
+        v = []
+        for k in range(3):
+            i = dr.gather(mi.UInt32, self.triangles, tri * 3 + k)
+            v.append(mi.Point3f(*[dr.gather(mi.Float, self.target, i * 3 + d) for d in range(3)]))
+        e0, e1, d = v[1] - v[0], v[2] - v[0], p - v[0]
+        d00, d01, d11 = dr.dot(e0, e0), dr.dot(e0, e1), dr.dot(e1, e1)
+        d20, d21 = dr.dot(d, e0), dr.dot(d, e1)
+        inv = dr.rcp(dr.maximum(d00 * d11 - d01 * d01, 1e-30))
+        b1 = (d11 * d20 - d01 * d21) * inv
+        b2 = (d00 * d21 - d01 * d20) * inv
+        return mi.Vector3f(1 - b1 - b2, b1, b2)
+
     def shade(self, tri, bary, active=True):
         """Shade hits: ``tri`` (UInt32), ``bary`` (Vector3f, b0 b1 b2) → (Color3f, covered, fell_back).
 

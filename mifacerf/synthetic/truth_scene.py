@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, ring_camera
 from ..capture_folder import Capture
 from ..environment import Environment, resolve
 from .synth import load_subject, read_truth
@@ -72,7 +72,7 @@ class TruthRenderer:
             if cam is None:
                 raise KeyError(f"no camera {name!r}; cameras: {', '.join(c.name for c in self.cameras)}")
         else:
-            cam = novel_camera(self.cameras, yaw, pitch)
+            cam = ring_camera(self.cameras, yaw, pitch)
         return cam if size is None else cam.resized(size, size)
 
     # ----------------------------------------------------------------- render
@@ -90,23 +90,6 @@ class TruthRenderer:
         sc = self.scene(env)
         sc.set_pose(self.subject.pose(np.asarray(params, np.float64)))
         return render_truth(sc.scene, camera, spp=spp, seed=seed)
-
-
-def novel_camera(cameras: list[Camera], yaw: float, pitch: float, name: str | None = None) -> Camera:
-    """A distortion-free camera on the capture cameras' ring (same distance, target and focal length)."""
-    ref = cameras[0]
-    centres = np.stack([c.centre for c in cameras])
-    fwd = np.stack([c.forward for c in cameras])
-    # the common target: least-squares intersection of the optical axes
-    A = sum(np.eye(3) - np.outer(f, f) for f in fwd)
-    b = sum((np.eye(3) - np.outer(f, f)) @ c for f, c in zip(fwd, centres))
-    target = np.linalg.solve(A, b)
-    dist = float(np.mean(np.linalg.norm(centres - target, axis=1)))
-    y, p = np.radians(yaw), np.radians(pitch)
-    eye = target + dist * np.array([np.sin(y) * np.cos(p), np.sin(p), np.cos(y) * np.cos(p)])
-    focal = float(np.mean([c.K[0, 0] for c in cameras]))
-    return Camera.look_at(name or f"yaw{yaw:+.0f}_pitch{pitch:+.0f}", eye, target, width=ref.width,
-                          height=ref.height, focal=focal)
 
 
 def _pairs(spec: str):
@@ -127,4 +110,4 @@ def truth_expression(out, name: str) -> dict:
     return dict(np.load(path))
 
 
-__all__ = ["TruthRenderer", "novel_camera", "truth_expression"]
+__all__ = ["TruthRenderer", "truth_expression"]
