@@ -1,0 +1,111 @@
+"""Interpolation between the light stage's directions, for arbitrary light directions.
+
+The light directions are triangulated on the sphere (their convex hull, scipy /
+qhull: the spherical Delaunay triangulation). A direction ω inside triangle
+(a, b, c) gets the weights λ solving ``λ_a d_a + λ_b d_b + λ_c d_c ∝ ω`` (gnomonic
+barycentrics), normalised to sum to 1 — exact at the captured directions (one-hot),
+continuous across edges, non-negative.
+
+Point location uses a lat-long lookup grid storing, per cell, the triangle that
+contains the cell's centre; at run time the cell's triangle is tried first and, if ω
+lies outside it (near an edge), its clamped weights are used — the error is confined
+to a sliver of one grid cell along the edges. Degenerate layouts (fewer than four
+lights, or all on one great circle) fall back to the nearest light.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..environment import direction_to_uv, latlong_grid
+from ..jitarrays import to_jit
+from ..variant import ensure_variant
+
+
+class LightInterpolator:
+    """``directions`` (L, 3) unit world vectors towards the lights; ``grid_height`` rows of the lookup grid."""
+
+    def __init__(self, directions: np.ndarray, grid_height: int = 128):
+        from scipy.spatial import ConvexHull, QhullError
+
+        self.directions = np.asarray(directions, np.float64)
+        self.n = len(self.directions)
+        self.grid_h, self.grid_w = grid_height, 2 * grid_height
+        self.nearest_only = True
+        if self.n >= 4 and np.linalg.matrix_rank(self.directions, tol=1e-9) == 3:
+            try:
+                hull = ConvexHull(self.directions)
+                tri = hull.simplices.copy()
+                self.nearest_only = False
+            except QhullError:
+                pass
+        if self.nearest_only:
+            self.triangles = np.zeros((0, 3), np.int64)
+            self.inverse = np.zeros((0, 3, 3))
+            dirs, _ = latlong_grid(self.grid_h)
+            self.grid = np.argmax(dirs.reshape(-1, 3) @ self.directions.T, axis=1)
+            return
+        self.triangles = tri
+        M = np.stack([self.directions[tri[:, k]] for k in range(3)], axis=2)  # columns = corners
+        self.inverse = np.linalg.inv(M)
+        dirs, _ = latlong_grid(self.grid_h)
+        lam = np.einsum("mij,nj->nmi", self.inverse, dirs.reshape(-1, 3))  # (N, M, 3)
+        score = lam.min(axis=2)
+        score[lam.sum(axis=2) <= 0] = -np.inf  # the antipodal triangle
+        self.grid = np.argmax(score, axis=1)
+
+    def _cell(self, d: np.ndarray) -> np.ndarray:
+        uv = direction_to_uv(d)
+        x = np.minimum((uv[:, 0] * self.grid_w).astype(np.int64), self.grid_w - 1)
+        y = np.minimum((uv[:, 1] * self.grid_h).astype(np.int64), self.grid_h - 1)
+        return y * self.grid_w + x
+
+    def weights(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 3) directions → light indices (N, 3) and weights (N, 3) (≥ 0, sum 1)."""
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        cell = self._cell(d)
+        if self.nearest_only:
+            idx = np.zeros((len(d), 3), np.int64)
+            idx[:, 0] = np.argmax(d @ self.directions.T, axis=1)
+            w = np.zeros((len(d), 3))
+            w[:, 0] = 1.0
+            return idx, w
+        t = self.grid[cell]
+        lam = np.clip(np.einsum("nij,nj->ni", self.inverse[t], d), 0.0, None)
+        lam /= np.maximum(lam.sum(1, keepdims=True), 1e-300)
+        return self.triangles[t], lam
+
+    # ------------------------------------------------------------------ Dr.Jit
+    def to_device(self):
+        """Upload the tables (call once; :meth:`weights_jit` uses them)."""
+        mi = ensure_variant()
+        self._grid_dev = to_jit(mi.UInt32, self.grid.astype(np.uint32))
+        self._tri_dev = to_jit(mi.UInt32, self.triangles.reshape(-1).astype(np.uint32) if len(self.triangles)
+                               else np.zeros(3, np.uint32))
+        self._inv_dev = to_jit(mi.Float, self.inverse.reshape(-1) if len(self.inverse) else np.zeros(9))
+        return self
+
+    def weights_jit(self, d, active=True):
+        """Dr.Jit version: Vector3f world directions → ([UInt32]*3 light ids, [Float]*3 weights)."""
+        import drjit as dr
+
+        mi = ensure_variant()
+        if not hasattr(self, "_grid_dev"):
+            self.to_device()
+        d = dr.normalize(d)
+        u = dr.atan2(d.x, -d.z) * (1.0 / (2 * np.pi))
+        u = u - dr.floor(u)
+        v = dr.safe_acos(d.y) * (1.0 / np.pi)
+        x = dr.minimum(mi.UInt32(u * self.grid_w), self.grid_w - 1)
+        y = dr.minimum(mi.UInt32(v * self.grid_h), self.grid_h - 1)
+        t = dr.gather(mi.UInt32, self._grid_dev, y * self.grid_w + x, active)
+        if self.nearest_only:
+            zero = dr.zeros(mi.UInt32, dr.width(t))
+            return [t, zero, zero], [dr.full(mi.Float, 1.0, dr.width(t)), mi.Float(0), mi.Float(0)]
+        ids = [dr.gather(mi.UInt32, self._tri_dev, t * 3 + k, active) for k in range(3)]
+        lam = []
+        for i in range(3):
+            row = [dr.gather(mi.Float, self._inv_dev, t * 9 + i * 3 + j, active) for j in range(3)]
+            lam.append(dr.maximum(row[0] * d.x + row[1] * d.y + row[2] * d.z, 0.0))
+        inv = dr.rcp(dr.maximum(lam[0] + lam[1] + lam[2], 1e-30))
+        return ids, [l_ * inv for l_ in lam]
