@@ -4,7 +4,7 @@ Public API (NumPy in, NumPy out; shapes in the docstrings)::
 
     from mifacerf.blending import BlendModel, horn, local_rotations
     model = BlendModel.fit(sources, neutral_index, triangles, fiducial_mask=None, regions=None,
-                           residual_threshold=2e-4, similarity_threshold=5e-4, max_dim=3)
+                           residual_threshold=5e-5, similarity_threshold=5e-4, max_dim=3)
     w = model.weights(targets)          # SparseWeights: indices/weights (T, V, 4)
     W = model.dense_weights(targets)    # (T, V, n_src)
     model.save("model.npz"); BlendModel.load("model.npz")

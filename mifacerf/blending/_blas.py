@@ -19,7 +19,18 @@ _GET = ("scipy_openblas_get_num_threads64_", "scipy_openblas_get_num_threads", "
         "openblas_get_num_threads")
 
 
+_HANDLES = None
+
+
 def _openblas_handles():
+    """(get, set) function pairs of the OpenBLAS libraries loaded now (cached after the first call)."""
+    global _HANDLES
+    if _HANDLES is None:
+        _HANDLES = _find_handles()
+    return _HANDLES
+
+
+def _find_handles():
     out = []
     try:
         with open("/proc/self/maps", encoding="utf-8") as f:

@@ -29,14 +29,15 @@ Robustness rules (each one documented here and tested):
    records what was used.
 4b. **Slivers.**  Near-coplanar points on the hull make qhull emit boundary
    simplices of almost zero volume (Hadamard ratios of 1e-13 occur on smooth
-   data).  Their barycentric transforms are huge, so float32 evaluation inside
-   them is meaningless and walks through them are erratic.  Before the checks,
-   boundary simplices with ratio below ``SLIVER_TOL`` are **peeled off**
-   (repeatedly, as peeling exposes others), unless that would leave a point
-   unused.  The triangulated region is then convex up to dents no deeper than
-   the peeled slivers; a target in a peeled sliver counts as outside and gets
-   the nearest boundary point's weights (a difference of the order of the
-   sliver's thickness).
+   data).  Their barycentric coordinates are hypersensitive (a weight can swing
+   from 0 to 1 over a nanometre of deformation) and meaningless in float32.
+   Boundary simplices with ratio below ``SLIVER_TOL`` are therefore marked as
+   **ghosts** (repeatedly, as marking exposes others), unless that would leave a
+   point in ghosts only.  Ghosts stay in the triangulation, which therefore
+   stays convex and walkable, but a target that lands in a ghost counts as
+   *outside*: it gets the weights of the nearest point on the boundary of the
+   non-ghost simplices (``facets``).  The difference from the ghost's own
+   barycentrics is bounded by the ghost's thickness.
 5. **Outside the hull**: a target is moved to the nearest point of the convex
    hull (unique, so continuous in the target) and weighted by that point's
    barycentric coordinates in its hull facet.  Inside, the weights are the
@@ -64,9 +65,9 @@ __all__ = [
 
 #: Hadamard-ratio threshold under which a simplex counts as flat (the triangulation is rejected)
 FLAT_TOL = 1e-12
-#: boundary simplices flatter than this are peeled off (see rule 4b)
+#: boundary simplices flatter than this become ghosts (see rule 4b)
 SLIVER_TOL = 1e-3
-#: relative tolerance on "simplex volumes add up to the hull's" (before peeling)
+#: relative tolerance on "simplex volumes add up to the hull's"
 VOLUME_RTOL = 1e-8
 #: default duplicate-merging distance (units of the PCA scale)
 DUP_TOL = 1e-7
@@ -88,7 +89,8 @@ class LocalTriangulation:
     transform : ``(S, m+1, m)``       scipy convention: ``b[:m] = T (x - r)``, ``b[m] = 1 - Σ b[:m]`` with
                                       ``T = transform[s, :m]``, ``r = transform[s, m]``
     neighbors : ``(S, m+1)`` int64    simplex across the facet opposite vertex ``j`` (-1: hull boundary)
-    facets : ``(H, m)`` int64         hull facets (point indices); empty for ``m = 0``
+    ghost : ``(S,)`` bool             boundary slivers (rule 4b): a target inside one counts as outside
+    facets : ``(H, m)`` int64         boundary facets of the non-ghost simplices; empty for ``m = 0``
     start : int                     simplex where walks start (contains the points' centroid)
     method : str                    "point", "intervals", "delaunay", "regular", "joggle" (+ " (degraded from m=k)")
     """
@@ -100,11 +102,12 @@ class LocalTriangulation:
     simplices: np.ndarray
     transform: np.ndarray
     neighbors: np.ndarray
+    ghost: np.ndarray
     facets: np.ndarray
     start: int
     method: str
-    #: ``(scipy Delaunay, (S_qhull,) map to our simplex index or -1 if peeled)`` when qhull's Delaunay was
-    #: used (not saved; the reference evaluator uses it)
+    #: the scipy ``Delaunay`` whose simplices these are, when qhull's Delaunay was used (not saved; the
+    #: reference evaluator calls its ``find_simplex``)
     qhull: object = field(default=None, repr=False, compare=False)
 
     @property
@@ -158,8 +161,10 @@ def simplex_transforms(points, simplices):
     return np.concatenate([T, r[:, None, :]], axis=1), ratio
 
 
-def _boundary_facets(simplices, neighbors):
-    s, j = np.nonzero(neighbors < 0)
+def _boundary_facets(simplices, neighbors, ghost):
+    """Facets of non-ghost simplices whose other side is the outside or a ghost: ``(H, m)``."""
+    across_ghost = np.where(neighbors >= 0, ghost[np.maximum(neighbors, 0)], True)
+    s, j = np.nonzero(~ghost[:, None] & across_ghost)
     m1 = simplices.shape[1]
     keep = np.ones((s.size, m1), dtype=bool)
     keep[np.arange(s.size), j] = False
@@ -170,16 +175,15 @@ def _hull_volume(points):
     return float(ConvexHull(points).volume)
 
 
-def _valid(points, simplices, neighbors, unpeeled=None) -> bool:
-    """Every point used, no flat simplex, symmetric neighbours, and the (unpeeled) volumes fill the hull."""
+def _valid(points, simplices, neighbors, ghost) -> bool:
+    """Every point in a non-ghost simplex, no flat simplex, symmetric neighbours, volumes fill the hull."""
     p, m = points.shape
-    if simplices.size == 0 or np.unique(simplices).size != p:
+    if simplices.size == 0 or np.unique(simplices[~ghost]).size != p:
         return False
     T, ratio = simplex_transforms(points, simplices)
     if np.any(ratio < FLAT_TOL) or not np.all(np.isfinite(T)):
         return False
-    full = simplices if unpeeled is None else unpeeled
-    A = points[full[:, :m]] - points[full[:, m:]]
+    A = points[simplices[:, :m]] - points[simplices[:, m:]]
     vol = np.abs(np.linalg.det(A)).sum() / np.prod(np.arange(1, m + 1))
     try:
         hv = _hull_volume(points)
@@ -187,7 +191,6 @@ def _valid(points, simplices, neighbors, unpeeled=None) -> bool:
         return False
     if not abs(vol - hv) <= VOLUME_RTOL * max(hv, 1e-300):
         return False
-    # neighbour symmetry
     S = simplices.shape[0]
     nb = neighbors
     if np.any(nb >= S):
@@ -201,31 +204,24 @@ def _valid(points, simplices, neighbors, unpeeled=None) -> bool:
     return True
 
 
-def peel_slivers(points, simplices, neighbors, tol: float = SLIVER_TOL):
-    """Remove boundary simplices with Hadamard ratio < ``tol`` (rule 4b); returns ``(S, N, kept mask)``."""
-    S, N = simplices.copy(), neighbors.copy()
+def mark_slivers(points, simplices, neighbors, tol: float = SLIVER_TOL) -> np.ndarray:
+    """Ghost mask ``(S,)`` of boundary slivers (rule 4b): Hadamard ratio < ``tol``, peeled from the outside in."""
+    S, N = simplices, neighbors
     _, ratio = simplex_transforms(points, S)
-    alive = np.ones(S.shape[0], dtype=bool)
+    ghost = np.zeros(S.shape[0], dtype=bool)
     uses = np.bincount(S.ravel(), minlength=points.shape[0])
     changed = True
     while changed:
         changed = False
-        cand = np.nonzero(alive & (ratio < tol) & np.any(N < 0, axis=1))[0]
+        exposed = np.any(np.where(N >= 0, ghost[np.maximum(N, 0)], True), axis=1)
+        cand = np.nonzero(~ghost & (ratio < tol) & exposed)[0]
         for s in cand[np.argsort(ratio[cand])]:
             if np.any(uses[S[s]] <= 1):
                 continue
-            alive[s] = False
+            ghost[s] = True
             uses[S[s]] -= 1
-            for j in range(S.shape[1]):
-                o = N[s, j]
-                if o >= 0:
-                    N[o][N[o] == s] = -1
             changed = True
-    new = np.full(S.shape[0], -1, dtype=np.int64)
-    new[alive] = np.arange(int(alive.sum()))
-    S, N = S[alive], N[alive]
-    N = np.where(N >= 0, new[np.maximum(N, 0)], -1)
-    return S, N, alive
+    return ghost
 
 
 def _try_delaunay(points, options):
@@ -233,13 +229,12 @@ def _try_delaunay(points, options):
         tri = Delaunay(points, qhull_options=options)
     except (QhullError, ValueError, IndexError):
         return None
-    S0 = tri.simplices.astype(np.int64)
-    S, N, alive = peel_slivers(points, S0, tri.neighbors.astype(np.int64))
-    if not _valid(points, S, N, S0):
+    S = tri.simplices.astype(np.int64)
+    N = tri.neighbors.astype(np.int64)
+    ghost = mark_slivers(points, S, N)
+    if not _valid(points, S, N, ghost):
         return None
-    index = np.full(alive.size, -1, dtype=np.int64)
-    index[alive] = np.arange(int(alive.sum()))
-    return S, N, (tri, index)
+    return S, N, ghost, tri
 
 
 def _try_regular(points):
@@ -262,17 +257,17 @@ def _try_regular(points):
     S = hull.simplices[lower].astype(np.int64)
     N = hull.neighbors[lower].astype(np.int64)
     N = np.where(N >= 0, new_id[np.maximum(N, 0)], -1)
-    S0 = S
-    S, N, _ = peel_slivers(points, S, N)
-    if not _valid(points, S, N, S0):
+    ghost = mark_slivers(points, S, N)
+    if not _valid(points, S, N, ghost):
         return None
-    return S, N, None
+    return S, N, ghost, None
 
 
-def _locate_start(points, simplices, transform):
+def _locate_start(points, simplices, transform, ghost):
     c = points.mean(axis=0)
     b = _bary(transform, np.broadcast_to(c, (simplices.shape[0], points.shape[1])))
-    return int(np.argmax(b.min(axis=1)))
+    score = np.where(ghost, -np.inf, b.min(axis=1))
+    return int(np.argmax(score))
 
 
 def _bary(transform, x):
@@ -324,7 +319,8 @@ def triangulate(coords, ids=None, preferred=None, dup_tol: float = DUP_TOL) -> L
             return LocalTriangulation(
                 m=0, points=pts[:, :0], point_ids=pids, merged=merged,
                 simplices=np.zeros((1, 1), dtype=np.int64), transform=np.zeros((1, 1, 0)),
-                neighbors=np.full((1, 1), -1, dtype=np.int64), facets=np.zeros((0, 0), dtype=np.int64),
+                neighbors=np.full((1, 1), -1, dtype=np.int64), ghost=np.zeros(1, dtype=bool),
+                facets=np.zeros((0, 0), dtype=np.int64),
                 start=0, method="point" + degraded)
         if m == 1:
             order = np.argsort(pts[:, 0], kind="stable")
@@ -336,7 +332,8 @@ def triangulate(coords, ids=None, preferred=None, dup_tol: float = DUP_TOL) -> L
             T, _ = simplex_transforms(pts, S)
             return LocalTriangulation(
                 m=1, points=pts, point_ids=pids, merged=merged, simplices=S, transform=T, neighbors=N,
-                facets=np.array([[order[0]], [order[-1]]], dtype=np.int64), start=(k - 1) // 2,
+                ghost=np.zeros(k, dtype=bool), facets=np.array([[order[0]], [order[-1]]], dtype=np.int64),
+                start=(k - 1) // 2,
                 method="intervals" + degraded)
         attempts = (("delaunay", lambda: _try_delaunay(pts, None)),
                     ("regular", lambda: _try_regular(pts)),
@@ -344,11 +341,11 @@ def triangulate(coords, ids=None, preferred=None, dup_tol: float = DUP_TOL) -> L
         for name, attempt in attempts:
             res = attempt()
             if res is not None:
-                S, N, qh = res
+                S, N, ghost, qh = res
                 T, _ = simplex_transforms(pts, S)
                 return LocalTriangulation(
                     m=m, points=pts, point_ids=pids, merged=merged, simplices=S, transform=T, neighbors=N,
-                    facets=_boundary_facets(S, N), start=_locate_start(pts, S, T),
+                    ghost=ghost, facets=_boundary_facets(S, N, ghost), start=_locate_start(pts, S, T, ghost),
                     method=name + degraded, qhull=qh)
         degraded = f" (degraded from m={m0})"
         m -= 1
@@ -358,11 +355,11 @@ def triangulate(coords, ids=None, preferred=None, dup_tol: float = DUP_TOL) -> L
 def barycentric_bruteforce(tri: LocalTriangulation, x):
     """Containing simplex by brute force: ``(simplex (q,), bary (q, m+1), min_bary (q,))`` for ``x`` ``(q, m)``.
 
-    The simplex maximising the smallest barycentric coordinate (> -tol means inside).
+    The non-ghost simplex maximising the smallest barycentric coordinate (> -tol means inside).
     """
     x = np.asarray(x, dtype=np.float64)
     b = _bary(tri.transform[None], x[:, None, :])               # (q, S, m+1)
-    mins = b.min(axis=2)
+    mins = np.where(tri.ghost[None, :], -np.inf, b.min(axis=2))
     s = np.argmax(mins, axis=1)
     return s, b[np.arange(x.shape[0]), s], mins[np.arange(x.shape[0]), s]
 

@@ -46,7 +46,7 @@ __all__ = ["BlendModel", "SparseWeights", "K_MAX", "DEFAULT_RESIDUAL_THRESHOLD",
 #: slots per (frame, vertex) in SparseWeights
 K_MAX = 4
 #: default RMS PCA residual (metres) below which a dimension is dropped
-DEFAULT_RESIDUAL_THRESHOLD = 2e-4
+DEFAULT_RESIDUAL_THRESHOLD = 5e-5
 #: default RMS distance (metres) under which two expressions count as similar in a region
 DEFAULT_SIMILARITY_THRESHOLD = 5e-4
 FORMAT_VERSION = 1
@@ -301,7 +301,7 @@ class BlendModel:
             ref = (q - cq[:, None, :]) * nb_w[..., None]
             basis = np.zeros((G, m, Kw, 3))
             z0 = np.zeros((G, m))
-            Ts, rs, nbrs, sids, fps, fss = [], [], [], [], [], []
+            Ts, rs, nbrs, sids, fps, fss, ghosts = [], [], [], [], [], [], []
             s_start = np.zeros(G, np.int64); s_first = np.zeros(G, np.int64); s_count = np.zeros(G, np.int64)
             f_first = np.zeros(G, np.int64); f_count = np.zeros(G, np.int64)
             so = fo = 0
@@ -314,6 +314,7 @@ class BlendModel:
                 rs.append(tri.transform[:, m, :])
                 nbrs.append(np.where(tri.neighbors >= 0, tri.neighbors + so, -1))
                 sids.append(tri.point_ids[tri.simplices])
+                ghosts.append(tri.ghost.astype(np.int32))
                 s_start[i], s_first[i], s_count[i] = tri.start + so, so, S_
                 fps.append(tri.points[tri.facets])
                 fss.append(tri.point_ids[tri.facets])
@@ -322,7 +323,7 @@ class BlendModel:
                 fo += tri.facets.shape[0]
             g = GroupTables(m=m, nb_idx=nb_idx, nb_w=nb_w, ref=ref, basis=basis, z0=z0,
                             T=np.concatenate(Ts), r=np.concatenate(rs), nbr=np.concatenate(nbrs),
-                            sid=np.concatenate(sids), s_start=s_start, s_first=s_first, s_count=s_count,
+                            sid=np.concatenate(sids), ghost=np.concatenate(ghosts), s_start=s_start, s_first=s_first, s_count=s_count,
                             fpts=np.concatenate(fps), fsid=np.concatenate(fss), f_first=f_first,
                             f_count=f_count)
             g.check(self.n_vertices, self.n_sources)
@@ -408,16 +409,16 @@ class BlendModel:
     def weight_lipschitz(self) -> np.ndarray:
         """``(F,)`` per fiducial: the largest rate of change of any weight per metre of local deformation.
 
-        ``max_s,j |∇ b_j|`` over the vertex's simplices, divided by the PCA scale (0 for ``m = 0``).  A
-        weight can change by this much times a change of the deformation vector (RMS over... no: Euclidean
-        norm of the 3|V|-vector, metres).  Slivers make it large: float32 evaluation (about 1e-8 m of
-        rounding in the deformation) then agrees with float64 only to ``1e-8 × this``.
+        ``max_s,j |∇ b_j|`` over the vertex's non-ghost simplices, divided by the PCA scale (0 for
+        ``m = 0``).  A weight changes by at most this much times the change of the deformation vector
+        (Euclidean norm of the ``3|V|``-vector, metres).  Thin simplices make it large: float32 evaluation
+        (about 1e-8 m of rounding in the deformation) agrees with float64 only to ``1e-8 × this``.
         """
         out = np.zeros(self.fiducials.size)
         for f, (sp, tri) in enumerate(zip(self.spaces, self.triangulations)):
             if tri.m == 0:
                 continue
-            T = tri.transform[:, : tri.m, :]
+            T = tri.transform[~tri.ghost, : tri.m, :]
             g = np.concatenate([T, -T.sum(axis=1, keepdims=True)], axis=1)
             out[f] = np.linalg.norm(g, axis=2).max() / sp.scale
         return out
@@ -479,6 +480,7 @@ class BlendModel:
             tri_simplices=np.concatenate([pad(t.simplices, (t.n_simplices, 4)) for t in tris]),
             tri_transform=np.concatenate([pad(t.transform, (t.n_simplices, 4, 3)) for t in tris]),
             tri_neighbors=np.concatenate([pad(t.neighbors, (t.n_simplices, 4)) for t in tris]),
+            tri_ghost=np.concatenate([t.ghost for t in tris]),
             tri_h_off=off([t.facets.shape[0] for t in tris]),
             tri_facets=np.concatenate([pad(t.facets, (t.facets.shape[0], 3)) for t in tris]),
             tri_start=np.array([t.start for t in tris], dtype=np.int64),
@@ -515,7 +517,8 @@ class BlendModel:
                 m=m, points=pts, point_ids=d["tri_point_ids"][p0:p1],
                 merged=d["tri_merged"][f][d["tri_merged"][f] >= 0],
                 simplices=d["tri_simplices"][s0:s1, : m + 1], transform=d["tri_transform"][s0:s1, : m + 1, :m],
-                neighbors=d["tri_neighbors"][s0:s1, : m + 1], facets=d["tri_facets"][h0:h1, :m],
+                neighbors=d["tri_neighbors"][s0:s1, : m + 1], ghost=d["tri_ghost"][s0:s1].astype(bool),
+                facets=d["tri_facets"][h0:h1, :m],
                 start=int(d["tri_start"][f]), method=str(d["tri_method"][f])))
             spaces.append(LocalSpace(mean=d["pca_mean"][f], basis=sp_basis, scale=float(d["pca_scale"][f]),
                                      coords=np.zeros((0, m)), residuals=d["pca_residuals"][f], m=m))

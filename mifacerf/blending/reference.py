@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import Delaunay
 
+from ._blas import single_threaded_blas
 from .delaunay import LocalTriangulation, barycentric_bruteforce, nearest_on_hull
 from .horn1987 import horn
 
@@ -35,14 +36,11 @@ def vertex_coords(model, f: int, targets) -> np.ndarray:
 
 
 def _qhull(tri: LocalTriangulation):
-    """``(Delaunay, map qhull simplex -> ours or -1)``; rebuilt (and checked) for loaded models."""
+    """The scipy ``Delaunay`` of the triangulation; rebuilt (and checked) for loaded models."""
     if tri.qhull is None and tri.method.startswith("delaunay"):
         q = Delaunay(tri.points)
-        key = lambda S: {tuple(sorted(r)): i for i, r in enumerate(S.tolist())}
-        ours = key(tri.simplices)
-        index = np.array([ours.get(tuple(sorted(r)), -1) for r in q.simplices.tolist()], dtype=np.int64)
-        if np.array_equal(np.sort(index[index >= 0]), np.arange(tri.n_simplices)):
-            tri.qhull = (q, index)
+        if np.array_equal(q.simplices, tri.simplices):
+            tri.qhull = q
     return tri.qhull
 
 
@@ -65,18 +63,16 @@ def vertex_weights(tri: LocalTriangulation, z, inside_tol: float = 1e-10):
         b = np.stack([b0, 1 - b0], axis=1)
         bmin = b.min(axis=1)
     else:
-        qh = _qhull(tri)
-        if qh is not None:
-            q, index = qh
+        q = _qhull(tri)
+        if q is not None:
             sq = q.find_simplex(z)
-            s = np.where(sq >= 0, index[np.maximum(sq, 0)], -1)      # -1: outside, or in a peeled sliver
-            ss = np.maximum(sq, 0)
-            Tm = q.transform[ss, :m, :]
-            c = np.einsum("tij,tj->ti", Tm, z - q.transform[ss, m, :])
+            s = np.maximum(sq, 0)
+            Tm = q.transform[s, :m, :]
+            c = np.einsum("tij,tj->ti", Tm, z - q.transform[s, m, :])
             b = np.concatenate([c, 1 - c.sum(axis=1, keepdims=True)], axis=1)
-            bmin = np.where(s >= 0, b.min(axis=1), -np.inf)
+            # outside the hull, or in a ghost sliver (delaunay rule 4b): the nearest-boundary rule
+            bmin = np.where((sq >= 0) & ~tri.ghost[s], b.min(axis=1), -np.inf)
             simplices = q.simplices
-            s = ss
         else:
             s, b, bmin = barycentric_bruteforce(tri, z)
             simplices = tri.simplices
@@ -95,8 +91,14 @@ def vertex_weights(tri: LocalTriangulation, z, inside_tol: float = 1e-10):
 def reference_fiducial_weights(model, targets, inside_tol: float = 1e-10):
     """Per-fiducial weights of targets ``(T, V, 3)``: ``(ids (T, F, 4) int32, w (T, F, 4) float64)``.
 
-    A Python loop over fiducial vertices; see the module docstring.
+    A Python loop over fiducial vertices (BLAS single-threaded: the calls are tiny); see the module
+    docstring.
     """
+    with single_threaded_blas():
+        return _reference_fiducial_weights(model, targets, inside_tol)
+
+
+def _reference_fiducial_weights(model, targets, inside_tol):
     targets = np.asarray(targets, dtype=np.float64)
     Tn, F = targets.shape[0], model.fiducials.size
     ids = np.zeros((Tn, F, 4), dtype=np.int32)

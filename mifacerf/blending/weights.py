@@ -14,7 +14,8 @@ weights and need none) does, for every lane = (fiducial vertex ``f``, frame ``t`
    centroid; step across the facet of the most negative barycentric).  The walk
    terminates in Delaunay and regular triangulations (Edelsbrunner's
    acyclicity); lanes still walking after ``max_iter`` steps (numerical cycles)
-   fall back to a brute-force search over the vertex's simplices;
+   fall back to a brute-force search over the vertex's simplices.  A walk that
+   ends in a ghost sliver (:mod:`.delaunay`, rule 4b) counts as outside;
 5. barycentric weights in closed form (``T (z - r)``), or — when the walk leaves
    the hull through a boundary facet — the barycentrics of the nearest point on
    the hull (a loop over the vertex's hull facets: point, segment or triangle
@@ -73,7 +74,8 @@ class GroupTables:
     ref ``(G, K, 3)``      neutral neighbourhood centred on its (weighted) centroid
     basis ``(G, m, K, 3)`` PCA directions divided by the PCA scale (zero on padding)
     z0 ``(G, m)``          the neutral's own coordinates ``<P_0(V) - mean, basis>``
-    T ``(S, m, m)``, r ``(S, m)``, nbr ``(S, m+1)`` (-1 = boundary), sid ``(S, m+1)`` source ids
+    T ``(S, m, m)``, r ``(S, m)``, nbr ``(S, m+1)`` (-1 = boundary), sid ``(S, m+1)`` source ids,
+    ghost ``(S,)`` 1 for ghost slivers (a target inside one counts as outside)
     s_start ``(G,)``, s_first ``(G,)``, s_count ``(G,)``   walk start; the group's simplex range per vertex
     fpts ``(H, m, m)`` facet vertex coordinates, fsid ``(H, m)`` source ids, f_first/f_count ``(G,)``
     """
@@ -88,6 +90,7 @@ class GroupTables:
     r: np.ndarray
     nbr: np.ndarray
     sid: np.ndarray
+    ghost: np.ndarray
     s_start: np.ndarray
     s_first: np.ndarray
     s_count: np.ndarray
@@ -255,24 +258,17 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
         max_iter = 2 * int(g.s_count.max()) + 8
     sweeps = JACOBI_SWEEPS[precision]
 
-    # ---- tables → device (once per call)
-    tgt = Float(np.ascontiguousarray(targets_vt, dtype=npf).ravel())
-    nb_idx = UInt(g.nb_idx.astype(np.uint32).ravel())
-    nb_w = Float(g.nb_w.astype(npf).ravel())
-    ref = Float(g.ref.astype(npf).ravel())
-    basis = Float(g.basis.astype(npf).ravel())
-    z0 = Float(g.z0.astype(npf).ravel())
-    Tt = Float(g.T.astype(npf).ravel())
-    rr = Float(g.r.astype(npf).ravel())
-    nbr = Int(g.nbr.astype(np.int32).ravel())
-    sid = Int(g.sid.astype(np.int32).ravel())
-    s_start = Int(g.s_start.astype(np.int32))
-    s_first = Int(g.s_first.astype(np.int32))
-    s_count = Int(g.s_count.astype(np.int32))
-    fpts = Float(g.fpts.astype(npf).ravel())
-    fsid = Int(g.fsid.astype(np.int32).ravel())
-    f_first = Int(g.f_first.astype(np.int32))
-    f_count = Int(g.f_count.astype(np.int32))
+    # ---- tables → device (once per call), through 64-byte-aligned copies: Dr.Jit records a mapped
+    #      array's alignment in the kernel, so varying NumPy alignments would recompile it
+    from mifacerf.jitarrays import to_jit
+
+    F_ = lambda a: to_jit(Float, np.ascontiguousarray(a, dtype=npf).ravel())
+    I_ = lambda a: to_jit(Int, np.ascontiguousarray(a, dtype=np.int32).ravel())
+    tgt = F_(targets_vt)
+    nb_idx = to_jit(UInt, np.ascontiguousarray(g.nb_idx, dtype=np.uint32).ravel())
+    nb_w, ref, basis, z0, Tt, rr, fpts = (F_(a) for a in (g.nb_w, g.ref, g.basis, g.z0, g.T, g.r, g.fpts))
+    nbr, sid, ghost, s_start, s_first, s_count, fsid, f_first, f_count = (
+        I_(a) for a in (g.nbr, g.sid, g.ghost, g.s_start, g.s_first, g.s_count, g.fsid, g.f_first, g.f_count))
     eps = dr.opaque(Float, inside_tol)
     big = dr.opaque(Float, np.finfo(npf).max)
     it_max = dr.opaque(Int, max_iter)
@@ -374,6 +370,7 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
             bmin = b[0]
             for j in range(1, m + 1):
                 bmin = dr.minimum(bmin, b[j])
+            bmin = dr.select(dr.gather(Int, ghost, sk) != 0, -big, bmin)
             better = bmin > best_min
             return k + 1, dr.select(better, sk, best_s), dr.select(better, bmin, best_min)
 
@@ -381,6 +378,7 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
             state=(Int(0), Int(s), -big), cond=b_cond, body=b_body, label="blend_bruteforce")
         s = dr.select(stuck, best_s, s)
         outside = dr.select(stuck, best_min < -eps, outside)
+        outside |= dr.gather(Int, ghost, s) != 0         # landed in a ghost sliver: nearest-boundary rule
 
         # -------- 5a) inside: clamped, renormalised barycentrics
         b = bary(s)

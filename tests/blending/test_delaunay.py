@@ -107,16 +107,25 @@ def test_qhull_precision_error_is_caught():
     assert np.all(np.isfinite(w)) and np.allclose(w.sum(1), 1)
 
 
-def test_boundary_sliver_is_peeled():
+def test_boundary_sliver_becomes_a_ghost():
     P = np.array([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 1e-9), (0.5, 0.5, 1)], float)
     d = Delaunay(P)
     assert D.simplex_transforms(P, d.simplices)[1].min() < 1e-8      # qhull keeps a flat tetrahedron
     tri = triangulate(P)
-    assert tri.method == "delaunay" and tri.n_simplices == 2
-    assert D.simplex_transforms(tri.points, tri.simplices)[1].min() > 0.1
-    assert set(np.unique(tri.simplices)) == set(range(5))
+    assert tri.method == "delaunay" and tri.n_simplices == 3 and tri.ghost.sum() == 1
+    assert D.simplex_transforms(tri.points, tri.simplices[~tri.ghost])[1].min() > 0.1
+    assert set(np.unique(tri.simplices[~tri.ghost])) == set(range(5))
     ids, w = weights_numpy(tri, P)                                    # all points reproduce
     assert np.all(ids[np.arange(5), w.argmax(1)] == np.arange(5)) and np.allclose(w.max(1), 1)
+    # a target inside the ghost gets the weights of the nearest point of the non-ghost boundary:
+    # near the base's centre, that is the diagonal shared by the two real tetrahedra's bases
+    x = np.array([[0.5, 0.5, 0.3e-9]])
+    g = d.find_simplex(x)[0]
+    assert tri.ghost[g]
+    ids, w = weights_numpy(tri, x)
+    dw = np.zeros(5)
+    np.add.at(dw, ids[0], w[0])
+    assert np.isclose(dw[4], 0, atol=1e-6) and np.isclose(dw.sum(), 1) and (dw[1] > 0.4 or dw[0] > 0.4)
 
 
 def test_errors():
