@@ -128,3 +128,81 @@ class ViewSampler:
         if self.tri is None:
             return np.ones(len(p), bool) if self.kind == "line" else np.zeros(len(p), bool)
         return self.tri.find_simplex(p) < 0
+
+    # ------------------------------------------------------------------ Dr.Jit
+    def weights_jit(self, view):
+        """Dr.Jit version of :meth:`weights` for a Vector3f of view directions (world).
+
+        Returns ([UInt32]*3 camera indices, [Float]*3 weights). The loops over the
+        (few) triangles and hull edges are unrolled into the kernel.
+        """
+        import drjit as dr
+
+        from ..variant import ensure_variant
+
+        mi = ensure_variant()
+        Float, UInt32 = mi.Float, mi.UInt32
+        d = dr.normalize(view)
+        yaw = dr.atan2(d.x, d.z)
+        pitch = dr.asin(dr.clip(d.y, -1.0, 1.0))
+        n = dr.width(yaw)
+        ids = [dr.zeros(UInt32, n) for _ in range(3)]
+        w = [dr.full(Float, 1.0, n), dr.zeros(Float, n), dr.zeros(Float, n)]
+        if self.kind == "single":
+            return ids, w
+        if self.kind == "line":
+            ax, org = [float(x) for x in self.line_axis], [float(x) for x in self.line_origin]
+            s = (yaw - org[0]) * ax[0] + (pitch - org[1]) * ax[1]
+            pos = [float(x) for x in self.line_pos]
+            k = dr.zeros(UInt32, n)
+            for j in range(1, len(pos) - 1):
+                k = dr.select(s >= pos[j], UInt32(j), k)
+            lo = dr.zeros(Float, n)
+            hi = dr.zeros(Float, n)
+            a_id = dr.zeros(UInt32, n)
+            b_id = dr.zeros(UInt32, n)
+            for j in range(len(pos) - 1):
+                sel = k == j
+                lo = dr.select(sel, pos[j], lo)
+                hi = dr.select(sel, pos[j + 1], hi)
+                a_id = dr.select(sel, UInt32(int(self.line_order[j])), a_id)
+                b_id = dr.select(sel, UInt32(int(self.line_order[j + 1])), b_id)
+            t = dr.clip((s - lo) / dr.maximum(hi - lo, Float(1e-30)), 0.0, 1.0)
+            return [a_id, b_id, ids[2]], [1 - t, t, w[2]]
+        found = dr.zeros(mi.Bool, n)
+        for t_i, simplex in enumerate(self.tri.simplices):
+            T = [[float(x) for x in row] for row in self.tri.transform[t_i]]
+            b0 = T[0][0] * (yaw - T[2][0]) + T[0][1] * (pitch - T[2][1])
+            b1 = T[1][0] * (yaw - T[2][0]) + T[1][1] * (pitch - T[2][1])
+            b2 = 1 - b0 - b1
+            inside = ~found & (b0 >= -1e-7) & (b1 >= -1e-7) & (b2 >= -1e-7)
+            bb = [dr.maximum(b0, Float(0)), dr.maximum(b1, Float(0)), dr.maximum(b2, Float(0))]
+            tot = bb[0] + bb[1] + bb[2]
+            for k in range(3):
+                ids[k] = dr.select(inside, UInt32(int(simplex[k])), ids[k])
+                w[k] = dr.select(inside, bb[k] / tot, w[k])
+            found |= inside
+        best = dr.full(Float, dr.inf, n)
+        e_a = dr.zeros(UInt32, n)
+        e_b = dr.zeros(UInt32, n)
+        e_t = dr.zeros(Float, n)
+        for (ia, ib), a, b in zip(self.hull_edges, self.hull_a, self.hull_b):
+            a, b = [float(x) for x in a], [float(x) for x in b]
+            ab = [b[0] - a[0], b[1] - a[1]]
+            denom = max(ab[0] * ab[0] + ab[1] * ab[1], 1e-300)
+            t = dr.clip(((yaw - a[0]) * ab[0] + (pitch - a[1]) * ab[1]) / denom, 0.0, 1.0)
+            qx, qy = a[0] + t * ab[0], a[1] + t * ab[1]
+            dist = (yaw - qx) ** 2 + (pitch - qy) ** 2
+            closer = dist < best
+            best = dr.select(closer, dist, best)
+            e_a = dr.select(closer, UInt32(int(ia)), e_a)
+            e_b = dr.select(closer, UInt32(int(ib)), e_b)
+            e_t = dr.select(closer, t, e_t)
+        out = ~found
+        ids[0] = dr.select(out, e_a, ids[0])
+        ids[1] = dr.select(out, e_b, ids[1])
+        ids[2] = dr.select(out, UInt32(0), ids[2])
+        w[0] = dr.select(out, 1 - e_t, w[0])
+        w[1] = dr.select(out, e_t, w[1])
+        w[2] = dr.select(out, 0.0, w[2])
+        return ids, w

@@ -35,11 +35,14 @@ def test_weights_are_barycentric_inside(six):
     assert not vs.outside(dirs_from_chart(p[:, 0], p[:, 1])).any()
 
 
+SHARED = ViewSampler.from_cameras(camera_ring(CAMERA_LAYOUTS[6], width=32, height=32, target=(0, 0, 0),
+                                               distortion_scale=0))
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.floats(-1.4, 1.4), st.floats(-1.2, 1.2))
 def test_weights_valid_everywhere_and_continuous(yaw, pitch):
-    cams = camera_ring(CAMERA_LAYOUTS[6], width=32, height=32, target=(0, 0, 0), distortion_scale=0)
-    vs = ViewSampler.from_cameras(cams)
+    vs = SHARED
     eps = 1e-6
     d = dirs_from_chart([yaw, yaw + eps], [pitch, pitch + eps])
     w = vs.dense(d)
@@ -68,3 +71,18 @@ def test_degenerate_layouts():
     np.testing.assert_allclose(w[1], [0, 0, 1.0], atol=1e-9)
     with pytest.raises(ValueError):
         ViewSampler(np.zeros((0, 3)))
+
+
+def test_drjit_weights_agree_with_numpy(six, mi, rng):
+    from mifacerf.jitarrays import to_jit
+
+    cams, vs = six
+    yaw = rng.uniform(-1.4, 1.4, 400)
+    pitch = rng.uniform(-1.0, 1.0, 400)
+    d = dirs_from_chart(yaw, pitch)
+    ref = vs.dense(d)
+    ids, w = vs.weights_jit(to_jit(mi.Vector3f, d.T))
+    got = np.zeros_like(ref)
+    for k in range(3):
+        np.add.at(got, (np.arange(400), np.asarray(ids[k]).astype(int)), np.asarray(w[k]))
+    np.testing.assert_allclose(got, ref, atol=1e-4)
