@@ -1,0 +1,215 @@
+"""The image-based material: reflectance fields evaluated for *any* light direction, per hit.
+
+Where the exact environment path (:mod:`.frame`) sums fixed light-stage weights, a
+BSDF must answer "how much light from direction ω leaves towards the viewer" for
+arbitrary ω, so that Mitsuba's own emitters (directional, point, environment) can
+light the face through standard integrators. :class:`MaterialState` evaluates, for a
+hit at barycentrics b of target triangle (v0, v1, v2), viewer direction ω_o and light
+direction ω_i (world)::
+
+    f(ω_i) = Σ_k b_k Σ_slots w_{k,s} Σ_c cw_{k,s,c}(R ω_o) · F_{s,c}(x_{s,c}) [ interp(R ω_i) ]
+             / (Σ of the same weights where the field covers x)
+
+with ``R = R_ts`` the vertex's local rotation into source ``s`` (§6.1), ``cw`` the camera
+weights of the rotated view (:class:`.views.ViewSampler`, per hit; cameras that do not
+see the vertex in ``s`` drop out), ``x_{s,c}`` the projection of the hit's surface point
+in the source geometry into camera ``c`` (bilinear over texels), and ``interp`` the
+light-stage interpolation (:class:`.light_interp.LightInterpolator`). The value is
+radiance per unit irradiance — Mitsuba's "BSDF × cosine". Per vertex at most
+``max_slots`` source expressions (the largest weights) are kept.
+
+Fields of every used source expression and every camera are held on the device as
+float16 rows plus a per-field (H, W) texel-index image.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..jitarrays import to_jit
+from ..variant import ensure_variant
+from .frame import CAM_PARAMS, camera_params
+from .light_interp import LightInterpolator
+from .relight import to_device_f16
+from .views import ViewSampler
+
+
+class MaterialState:
+    """Device arrays for evaluating the image-based material of one target (see module docstring).
+
+    ``model``: :class:`~.model.Model`; ``target`` (T, 3); ``weights`` (T, S) per-vertex expression weights.
+    """
+
+    def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None):
+        from ..blending import local_rotations
+
+        mi = ensure_variant()
+        self.mi = mi
+        self.model = model
+        T, S = model.n_vertices, len(model.expressions)
+        W = np.asarray(weights, np.float64)
+        if W.shape != (T, S) or np.asarray(target).shape != (T, 3):
+            raise ValueError(f"target {np.asarray(target).shape} / weights {W.shape} do not match the model "
+                             f"({T} vertices, {S} expressions)")
+        order = np.argsort(-W, axis=1)[:, :max_slots]
+        sw = np.take_along_axis(W, order, axis=1)
+        sw = np.where(sw > 1e-6, sw, 0.0)
+        sw /= np.maximum(sw.sum(1, keepdims=True), 1e-300)
+        used = sorted(set(order[sw > 0].tolist()))
+        self.used = used
+        self.K = order.shape[1]
+        u_of = {s: i for i, s in enumerate(used)}
+        slot_u = np.vectorize(lambda s: u_of.get(int(s), 0))(order)
+        nb = neighbourhoods if neighbourhoods is not None else model.blend.nbhd
+        target = np.asarray(target, np.float64)
+        rot = np.broadcast_to(np.eye(3), (T, self.K, 3, 3)).copy()  # identity for unused slots
+        for s in used:
+            R = local_rotations(target, model.vertices[s], nb)
+            hit = order == s
+            rot[hit] = R[np.nonzero(hit)[0]]
+        C = len(model.cameras)
+        self.C = C
+        # device tables
+        self.triangles = to_jit(mi.UInt32, model.triangles.reshape(-1))
+        self.target = to_jit(mi.Float, target.reshape(-1))
+        self.slot_u = to_jit(mi.UInt32, slot_u.reshape(-1))
+        self.slot_w = to_jit(mi.Float, sw.reshape(-1))
+        self.slot_R = to_jit(mi.Float, rot.reshape(-1))
+        self.sources = to_jit(mi.Float, np.stack([model.vertices[s] for s in used]).reshape(-1))
+        vis = np.stack([model.visible[s] for s in used]).astype(np.float32)  # (U, C, T)
+        self.visible = to_jit(mi.Float, vis.reshape(-1))
+        self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
+        index_parts, rf_parts, offsets = [], [], []
+        img_off, row_off = 0, 0
+        for s in used:
+            for c in range(C):
+                cam = model.cameras[c]
+                idx = np.full(cam.height * cam.width, -1, np.int64)
+                if model.has_field(s, c):
+                    f = model.field(s, c)
+                    idx[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f)) + row_off
+                    rf_parts.append(np.asarray(f.rf))
+                    row_off += len(f)
+                index_parts.append(idx)
+                offsets.append(img_off)
+                img_off += cam.height * cam.width
+        if row_off >= 2 ** 31 // (model.n_lights * 3):
+            raise ValueError("too many texels for one material state; render fewer expressions at once")
+        self.texel_index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32))
+        self.field_offset = to_jit(mi.UInt32, np.asarray(offsets, np.uint32))
+        self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
+        self.n_lights = model.n_lights
+        self.views = ViewSampler.from_cameras(model.cameras)
+        self.lights = LightInterpolator(model.light_directions).to_device()
+
+    # ------------------------------------------------------------------ kernel
+    def barycentric(self, tri, p):
+        import drjit as dr
+
+        mi = self.mi
+        v = []
+        for k in range(3):
+            i = dr.gather(mi.UInt32, self.triangles, tri * 3 + k)
+            v.append(mi.Point3f(*[dr.gather(mi.Float, self.target, i * 3 + d) for d in range(3)]))
+        e0, e1, d = v[1] - v[0], v[2] - v[0], p - v[0]
+        d00, d01, d11 = dr.dot(e0, e0), dr.dot(e0, e1), dr.dot(e1, e1)
+        d20, d21 = dr.dot(d, e0), dr.dot(d, e1)
+        inv = dr.rcp(dr.maximum(d00 * d11 - d01 * d01, 1e-30))
+        b1 = (d11 * d20 - d01 * d21) * inv
+        b2 = (d00 * d21 - d01 * d20) * inv
+        return [1 - b1 - b2, b1, b2]
+
+    def evaluate(self, tri, p, view, light, active=True):
+        """Radiance per unit irradiance (Color3f) for hits (triangle ``tri``, point ``p``), unit world
+        directions ``view`` (towards the viewer) and ``light`` (towards the light)."""
+        import drjit as dr
+
+        mi = self.mi
+        Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
+        active = mi.Bool(active)
+        b = self.barycentric(tri, p)
+        vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
+        n = dr.width(tri) if dr.width(tri) > 1 else dr.width(p.x)
+        K, C, T, L3 = self.K, self.C, len(self.model.vertices[0]), self.n_lights * 3
+        n_pairs = dr.opaque(UInt32, 3 * K)
+
+        def cond(i, *_):
+            return i < n_pairs
+
+        def body(i, r, g, bl, wsum):
+            k = i // K
+            j = i - k * K
+            v = dr.select(k == 0, vid[0], dr.select(k == 1, vid[1], vid[2]))
+            bk = dr.select(k == 0, b[0], dr.select(k == 1, b[1], b[2]))
+            slot = v * K + j
+            w = dr.gather(Float, self.slot_w, slot, active)
+            u = dr.gather(UInt32, self.slot_u, slot, active)
+            R = [dr.gather(Float, self.slot_R, slot * 9 + e, active) for e in range(9)]
+
+            def rotate(x):
+                return mi.Vector3f(R[0] * x.x + R[1] * x.y + R[2] * x.z, R[3] * x.x + R[4] * x.y + R[5] * x.z,
+                                   R[6] * x.x + R[7] * x.y + R[8] * x.z)
+
+            use = active & (w > 0)
+            cam_ids, cam_w = self.views.weights_jit(rotate(view))
+            light_ids, light_w = self.lights.weights_jit(rotate(light), use)
+            cam_w = [dr.select(use, x, 0.0) for x in cam_w]  # keep NaN from inactive lanes out of sums
+            light_w = [dr.select(use, x, 0.0) for x in light_w]
+            ps = [Float(0), Float(0), Float(0)]
+            for kk in range(3):
+                for d in range(3):
+                    ps[d] += b[kk] * dr.gather(Float, self.sources, (u * T + vid[kk]) * 3 + d, use)
+            # drop cameras that do not see the vertex in this source; renormalise
+            vis = [dr.gather(Float, self.visible, (u * C + cam_ids[m]) * T + v, use) for m in range(3)]
+            cw = [cam_w[m] * vis[m] for m in range(3)]
+            ctot = cw[0] + cw[1] + cw[2]
+            cinv = dr.select(ctot > 0, dr.rcp(ctot), 0.0)
+            for m in range(3):
+                c = cam_ids[m]
+                wc = cw[m] * cinv
+                usec = use & (wc > 0)
+
+                def P(e):
+                    return dr.gather(Float, self.cam_table, c * CAM_PARAMS + e, usec)
+
+                pc = [P(3 * rr) * ps[0] + P(3 * rr + 1) * ps[1] + P(3 * rr + 2) * ps[2] + P(9 + rr) for rr in range(3)]
+                iz = dr.rcp(pc[2])
+                x, y = pc[0] * iz, pc[1] * iz
+                k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
+                r2_ = x * x + y * y
+                rad = 1 + r2_ * (k1 + r2_ * (k2 + r2_ * k3))
+                xd = x * rad + 2 * p1 * x * y + p2 * (r2_ + 2 * x * x)
+                yd = y * rad + p1 * (r2_ + 2 * y * y) + 2 * p2 * x * y
+                uu, vv = P(12) * xd + P(14), P(13) * yd + P(15)
+                wi, hi = Int32(P(21)), Int32(P(22))
+                foff = dr.gather(UInt32, self.field_offset, u * C + c, usec)
+                x0f, y0f = dr.floor(uu), dr.floor(vv)
+                fx, fy = uu - x0f, vv - y0f
+                x0, y0 = Int32(x0f), Int32(y0f)
+                col = [Float(0), Float(0), Float(0)]
+                cov = Float(0)
+                for dy in (0, 1):
+                    for dx in (0, 1):
+                        xx, yy = x0 + dx, y0 + dy
+                        inside = usec & (pc[2] > 0) & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
+                        t = dr.gather(Int32, self.texel_index, foff + UInt32(dr.select(inside, yy * wi + xx, 0)),
+                                      inside)
+                        ok = inside & (t >= 0)
+                        tw = dr.select(ok, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
+                        row = UInt32(dr.select(ok, t, 0)) * L3
+                        for li in range(3):
+                            for ch in range(3):
+                                val = Float(dr.gather(type(self.rf), self.rf, row + light_ids[li] * 3 + ch, ok))
+                                col[ch] += tw * light_w[li] * val
+                        cov += tw
+                good = usec & (cov > 1e-3)
+                scale = dr.select(good, bk * w * wc / cov, 0.0)
+                r += scale * col[0]
+                g += scale * col[1]
+                bl += scale * col[2]
+                wsum += dr.select(good, bk * w * wc, 0.0)
+            return i + 1, r, g, bl, wsum
+
+        zeros = [dr.opaque(Float, 0, n) for _ in range(4)]
+        _, r, g, bl, wsum = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)
+        inv = dr.select(wsum > 1e-9, dr.rcp(wsum), 0.0)
+        return mi.Color3f(r * inv, g * inv, bl * inv)
