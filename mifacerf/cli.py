@@ -15,6 +15,7 @@ LAZY_COMMANDS = {
     "truth": "mifacerf.synthetic.cli:truth_cmd",
     "build": "mifacerf.rendering.cli:build_cmd",
     "render": "mifacerf.rendering.cli:render_cmd",
+    "compress": "mifacerf.rendering.cli:compress_cmd",
     "demo": "mifacerf.demo:demo_cmd",
 }
 

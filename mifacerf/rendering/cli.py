@@ -45,3 +45,20 @@ def render_cmd(scene_or_model, output, defines):
     except (KeyError, ValueError, FileNotFoundError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"wrote {out}")
+
+
+@click.command("compress")
+@click.argument("model", type=click.Path(exists=True, file_okay=False))
+@click.option("--rank", type=int, multiple=True, default=(8,), show_default=True,
+              help="PCA coefficients per texel (repeat for several).")
+def compress_cmd(model, rank):
+    """Add PCA-compressed versions of every reflectance field to a model."""
+    from tqdm.auto import tqdm
+
+    from .compression import compress_model
+    from .model import Model
+
+    m = Model(model)
+    for k in rank:
+        info = compress_model(m, k, progress=lambda jobs: tqdm(jobs, desc=f"pca{k}", unit="field"))
+        click.echo(f"rank {k}: {info['fields']} fields, {info['bytes'] / 1e6:.1f} MB")

@@ -166,11 +166,28 @@ class Model:
             raise ModelError(f"{rpath}: shape {rf.shape}, expected ({len(f.pixels)}, {self.n_lights}, 3)")
         self.loaded_fields.append((e, cam.name))
         self._fields[key] = f
-        total = sum(x.nbytes for x in self._fields.values())
+        total = sum(x.nbytes if isinstance(x, Field) else x["coeff"].nbytes for x in self._fields.values())
         while total > self.cache_bytes and len(self._fields) > 1:
             _, old = self._fields.popitem(last=False)
-            total -= old.nbytes
+            total -= old.nbytes if isinstance(old, Field) else old["coeff"].nbytes
         return f
+
+    def compressed_field(self, s: int, c: int, rank: int) -> dict:
+        """The ``pca<rank>`` version of a field: {coeff (N, K) f16, basis (K, L, 3), mean (L, 3)} (cached)."""
+        from .compression import compressed_path
+
+        key = ("pca", rank, s, c)
+        if key in self._fields:
+            self._fields.move_to_end(key)
+            return self._fields[key]
+        path = compressed_path(self.root, self.expressions[s], self.cameras[c].name, rank)
+        if not path.exists():
+            raise ModelError(f"{path}: missing; compress the model first (mifacerf compress MODEL --rank {rank})")
+        z = np.load(path)
+        comp = {k: z[k] for k in ("coeff", "basis", "mean")}
+        self.loaded_fields.append((self.expressions[s], self.cameras[c].name))
+        self._fields[key] = comp
+        return comp
 
     @property
     def blend(self):

@@ -31,6 +31,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
 from .meshscene import MeshScene
+from .compression import lit_texels_pca
 from .relight import lit_texels, to_device_f16
 
 
@@ -56,9 +57,13 @@ class Renderer:
     still count as visible in that field.
     """
 
-    def __init__(self, model, depth_tolerance: float = 0.004):
+    def __init__(self, model, depth_tolerance: float = 0.004, method: str = "exact", rank: int = 8):
+        if method not in ("exact", "pca"):
+            raise ValueError(f"unknown render method {method!r}; choose 'exact' or 'pca'")
         self.model = model
         self.depth_tolerance = depth_tolerance
+        self.method = method
+        self.rank = rank
         self._scene = MeshScene(model.vertices[model.expression_index(model.neutral)], model.triangles)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self._device: dict[tuple[int, int], object] = {}
@@ -69,6 +74,13 @@ class Renderer:
         if key not in self._bases or self._bases[key][0] is not env:
             self._bases[key] = (env, RotatedLightBasis(env, self.model.light_directions))
         return self._bases[key][1]
+
+    def _device_pca(self, s: int, c: int):
+        key = ("pca", self.rank, s, c)
+        if key not in self._device:
+            comp = self.model.compressed_field(s, c, self.rank)
+            self._device[key] = (comp, to_device_f16(comp["coeff"]))
+        return self._device[key]
 
     def _device_rf(self, s: int, c: int, f):
         key = (s, c)
@@ -94,17 +106,24 @@ class Renderer:
         for chunk in plan.chunks:
             s, c = chunk.s, chunk.c
             t0 = time.perf_counter()
-            f = model.field(s, c)
+            f = model.field(s, c)  # the texel map (the memory-mapped exact data is not read for 'pca')
             if (f.expression, f.camera) not in stats.fields_loaded:
                 stats.fields_loaded.append((f.expression, f.camera))
-            rf = self._device_rf(s, c, f)
+            data = self._device_rf(s, c, f) if self.method == "exact" else self._device_pca(s, c)
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
             fv = model.triangles[f.tri]
             wt = f.bary * chunk.weights[fv]
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
-            lit = lit_texels(rf, model.n_lights, active, fv[active], wt[active] / wsum_t[active, None], lighting[s])
+            coef = wt[active] / wsum_t[active, None]
+            if self.method == "exact":
+                lit = lit_texels(data, model.n_lights, active, fv[active], coef, lighting[s])
+            else:
+                comp, dev = data
+                m_v = np.einsum("vlc,lc->vc", lighting[s], comp["mean"])
+                beta_v = np.einsum("vlc,klc->vkc", lighting[s], comp["basis"])
+                lit = lit_texels_pca(dev, comp["basis"].shape[0], active, fv[active], coef, m_v, beta_v)
             cam = model.cameras[c]
             img = np.zeros((cam.height, cam.width, 4), np.float32)
             px = f.pixels[active]

@@ -1,0 +1,124 @@
+"""Compressed reflectance fields (the paper's future work, §8): few coefficients per texel.
+
+Method ``pca`` (per field): every texel's reflectance function, the 3L-vector
+``F(x)[l, c]``, is approximated by a mean plus ``rank`` principal components of that
+field (an SVD of the N × 3L texel matrix)::
+
+    F(x)[l, c] ≈ μ[l, c] + Σ_k C[x, k] B[k, l, c]
+
+Lighting is projected into the same basis: for a vertex's rotated light-stage weights
+L_v (L, 3) (rotated in the light domain, :mod:`.lighting`), ``m_v[c] = Σ_l μ[l,c] L_v[l,c]``
+and ``β_v[k, c] = Σ_l B[k,l,c] L_v[l,c]``; a texel's lit colour is then
+``Σ_i ĉ_i (m_{v_i} + Σ_k C[x,k] β_{v_i}[k])`` — ``rank`` terms per texel instead of L.
+The knob ``rank`` trades size and time for error (measured by ``mifacerf bench``).
+
+Storage: ``fields/<expr>/<cam>.pca<rank>.npz`` with ``coeff`` (N, rank) float16,
+``basis`` (rank, L, 3) and ``mean`` (L, 3) float32, next to the exact field.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import write_json_atomic
+from ..jitarrays import to_jit
+from ..variant import ensure_variant
+
+METHODS = ("pca",)
+
+
+def compress_field(rf: np.ndarray, rank: int) -> dict:
+    """PCA of one field: rf (N, L, 3) → {coeff (N, K) f16, basis (K, L, 3), mean (L, 3)}; K = min(rank, N, 3L)."""
+    rf = np.asarray(rf, np.float32)
+    n, L = rf.shape[:2]
+    X = rf.reshape(n, L * 3).astype(np.float64)
+    mean = X.mean(axis=0)
+    Xc = X - mean
+    k = int(min(rank, n, L * 3))
+    if n == 0 or k == 0:
+        return {"coeff": np.zeros((n, 0), np.float16), "basis": np.zeros((0, L, 3), np.float32),
+                "mean": mean.reshape(L, 3).astype(np.float32)}
+    # eigen-decomposition of the 3L x 3L covariance: cheap for N >> 3L, exact up to rounding
+    cov = Xc.T @ Xc
+    evals, evecs = np.linalg.eigh(cov)
+    basis = evecs[:, ::-1][:, :k].T  # (K, 3L), orthonormal rows
+    coeff = Xc @ basis.T
+    scale = np.abs(coeff).max(initial=0.0)
+    if scale > 65000:
+        raise ValueError("PCA coefficients overflow float16")
+    return {"coeff": coeff.astype(np.float16), "basis": basis.reshape(k, L, 3).astype(np.float32),
+            "mean": mean.reshape(L, 3).astype(np.float32)}
+
+
+def reconstruct(comp: dict) -> np.ndarray:
+    """(N, L, 3) reflectance functions back from a compressed field."""
+    c = np.asarray(comp["coeff"], np.float32)
+    B = comp["basis"].reshape(len(comp["basis"]), -1)
+    return (comp["mean"].reshape(1, -1) + c @ B).reshape(len(c), *comp["mean"].shape)
+
+
+def compressed_path(model_root, expression: str, camera: str, rank: int) -> Path:
+    return Path(model_root) / "fields" / expression / f"{camera}.pca{rank}.npz"
+
+
+def compress_model(model, rank: int, progress=None) -> dict:
+    """Write the ``pca<rank>`` version of every field of a model; returns {"bytes": ..., "fields": n}."""
+    jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
+    total = 0
+    for s, c in (progress(jobs) if progress else jobs):
+        f = model.field(s, c)
+        comp = compress_field(np.asarray(f.rf), rank)
+        path = compressed_path(model.root, f.expression, f.camera, rank)
+        tmp = path.with_name(f".{path.stem}.tmp.npz")
+        np.savez(tmp, **comp)
+        os.replace(tmp, path)
+        total += path.stat().st_size
+    meta = dict(model.meta)
+    ranks = sorted(set(meta.get("compressed", {}).get("pca", [])) | {int(rank)})
+    meta["compressed"] = {**meta.get("compressed", {}), "pca": ranks}
+    write_json_atomic(Path(model.root) / "model.json", meta)
+    model.meta = meta
+    return {"bytes": total, "fields": len(jobs)}
+
+
+def lit_texels_pca(coeff_device, rank: int, texels: np.ndarray, vertex_ids: np.ndarray, coef: np.ndarray,
+                   m_v: np.ndarray, beta_v: np.ndarray) -> np.ndarray:
+    """Lit colour (N, 3) of ``texels`` from PCA coefficients (Dr.Jit; ``rank`` terms per texel).
+
+    ``coeff_device``: flat Float16 (rows, rank); ``m_v`` (V, 3) and ``beta_v`` (V, rank, 3) the
+    per-vertex lighting projected on the field's mean and basis; ``coef`` (N, 3) the normalised
+    vertex weights ĉ.
+    """
+    import drjit as dr
+
+    mi = ensure_variant()
+    n = len(texels)
+    if n == 0:
+        return np.zeros((0, 3), np.float32)
+    Float, UInt32 = mi.Float, mi.UInt32
+    F16 = type(coeff_device)
+    row = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(max(rank, 1)))
+    vid = [to_jit(UInt32, np.asarray(vertex_ids[:, k], np.uint32)) for k in range(3)]
+    cf = [to_jit(Float, coef[:, k]) for k in range(3)]
+    mv = to_jit(Float, np.asarray(m_v).reshape(-1))
+    bv = to_jit(Float, np.asarray(beta_v).reshape(-1))
+    out = []
+    for ch in range(3):
+        acc = Float(0)
+        for k in range(3):
+            acc += cf[k] * dr.gather(Float, mv, vid[k] * 3 + ch)
+        out.append(acc)
+    stride = rank * 3
+    for j in range(rank):
+        c = Float(dr.gather(F16, coeff_device, row + j))
+        for ch in range(3):
+            b = (cf[0] * dr.gather(Float, bv, vid[0] * stride + j * 3 + ch)
+                 + cf[1] * dr.gather(Float, bv, vid[1] * stride + j * 3 + ch)
+                 + cf[2] * dr.gather(Float, bv, vid[2] * stride + j * 3 + ch))
+            out[ch] = dr.fma(c, b, out[ch])
+    dr.eval(*out)
+    return np.stack([np.asarray(o) for o in out], axis=1)
+
+
