@@ -20,11 +20,15 @@ from .model import ModelWriter
 
 
 def template_arrays(template: dict) -> dict:
-    """The arrays the model needs from a template dict (see docs/registration.md):
-    ``triangles`` (F, 3), ``fiducial`` (T,) bool, ``regions`` {name: vertex ids}."""
+    """The arrays the model needs from a template dict (schema ``mifacerf.template/1``, see
+    docs/registration.md): ``triangles`` (F, 3), ``fiducial`` (T,) bool (kind ``dot``),
+    ``regions`` {name: vertex ids}, ``n_vertices``."""
     tri = np.asarray(template["triangles"], np.int64)
-    n = int(template.get("n_vertices", tri.max() + 1))
-    kinds = template.get("kinds")
+    if "vertices" in template:
+        kinds = [v["kind"] for v in template["vertices"]]
+    else:
+        kinds = template.get("kinds")
+    n = len(kinds) if kinds is not None else int(template.get("n_vertices", tri.max() + 1))
     fiducial = np.array([k == "dot" for k in kinds]) if kinds is not None else np.ones(n, bool)
     regions = {k: np.asarray(v, np.int64) for k, v in (template.get("regions") or {}).items()}
     return {"triangles": tri, "fiducial": fiducial, "regions": regions, "n_vertices": n}
