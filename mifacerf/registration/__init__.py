@@ -1,0 +1,16 @@
+"""Registration (paper §3–4): from a light-stage capture to a morphable model in correspondence.
+
+Public API::
+
+    from mifacerf.registration import register_capture, Options
+    out = register_capture("CAPTURE", out=None, expressions=None, force=False, options=Options())
+
+Modules, one concept each: :mod:`.hand` (hand inputs), :mod:`.proxies`, :mod:`.dots` (filter,
+strength maps), :mod:`.triangulate`, :mod:`.morph`, :mod:`.visibility`, :mod:`.snap`,
+:mod:`.eyes_teeth`, :mod:`.contours` (lips / eyelids), :mod:`.dot_removal`, :mod:`.texcoords`,
+:mod:`.register` (orchestration), :mod:`.report` (evaluation against synthetic truth),
+:mod:`.cli`. Documentation: ``docs/registration.md``.
+"""
+from .register import Options, RegistrationInputError, register_capture
+
+__all__ = ["Options", "RegistrationInputError", "register_capture"]

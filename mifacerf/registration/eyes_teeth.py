@@ -1,0 +1,111 @@
+"""Head pose, teeth and eyes (paper §4.2).
+
+* **Head pose** — "one point on each ear and one point on the bridge of the nose, which
+  together determine a rigid transformation": the three points of an expression against
+  the same three in the neutral, Horn's closed form (:func:`rigid_from_points`). Where
+  the marks are missing, a robust rigid fit to the registered fiducials (the most rigid
+  third, iteratively trimmed) stands in, and the report says so.
+* **Upper teeth** — rigid with the skull: the head pose itself.
+* **Lower teeth** — "a single marked 3D point, which determines their translation relative
+  to the reference expression, and the relative rotation is approximated as the head pose
+  rotation": ``R = R_head``, ``t = p_marked − R_head p_marked,neutral``.
+* **Eyes** — the irises, marked in several views, give the front of each eye: the centre of
+  the iris ellipse fitted in each view is triangulated. Where the subject looks along a
+  known direction (at a named camera, or ``"forward"`` along the head's +Z), the eyeball
+  centre lies ``iris_depth`` behind the iris centre along it. Those centres, expressed in
+  the head frame, are averaged; every expression's eye centres are that average carried
+  by its head pose.
+
+Transforms are 4 × 4 homogeneous matrices acting on world points (neutral → expression).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..blending.horn1987 import horn
+from ..camera import Camera
+from .triangulate import triangulate
+
+
+def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    return np.asarray(P, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def rigid_from_points(P_neutral: np.ndarray, P_expr: np.ndarray) -> np.ndarray:
+    """The rigid transform (4, 4) that best maps ``P_neutral`` (N ≥ 3, 3) onto ``P_expr``."""
+    R, t = horn(np.asarray(P_neutral, np.float64), np.asarray(P_expr, np.float64))
+    return homogeneous(R, t)
+
+
+def robust_rigid(P_neutral: np.ndarray, P_expr: np.ndarray, keep: float = 0.35, iterations: int = 6) -> np.ndarray:
+    """A rigid fit to the most rigidly moving ``keep`` fraction of the points (iteratively trimmed)."""
+    P, Q = np.asarray(P_neutral, np.float64), np.asarray(P_expr, np.float64)
+    m = np.isfinite(P).all(1) & np.isfinite(Q).all(1)
+    P, Q = P[m], Q[m]
+    sel = np.arange(len(P))
+    T = rigid_from_points(P, Q)
+    for _ in range(iterations):
+        r = np.linalg.norm(apply(T, P) - Q, axis=1)
+        n = max(3, int(keep * len(P)))
+        sel = np.argsort(r)[:n]
+        T = rigid_from_points(P[sel], Q[sel])
+    return T
+
+
+def triangulate_marks(cams: list[Camera], marks: dict) -> np.ndarray | None:
+    """One 3-D point from clicks {camera name: (u, v)} (≥ 2 views), or None."""
+    names = [c.name for c in cams]
+    uv = np.full((len(cams), 1, 2), np.nan)
+    for cam, p in marks.items():
+        if cam in names:
+            uv[names.index(cam), 0] = p
+    tr = triangulate(cams, uv, max_error=3.0)
+    return tr.points[0] if tr.ok[0] else None
+
+
+def lower_teeth_transform(T_head: np.ndarray, mark_neutral: np.ndarray, mark_expr: np.ndarray) -> np.ndarray:
+    R = T_head[:3, :3]
+    return homogeneous(R, np.asarray(mark_expr) - R @ np.asarray(mark_neutral))
+
+
+def ellipse_centre(poly: np.ndarray) -> np.ndarray:
+    """Centre (2,) of the ellipse fitted to a closed polyline (P ≥ 5 points, pixels)."""
+    import cv2
+
+    pts = np.asarray(poly, np.float32).reshape(-1, 1, 2)
+    if len(pts) >= 5:
+        (cx, cy), _, _ = cv2.fitEllipse(pts)
+        return np.array([cx, cy], np.float64)
+    return np.asarray(poly, np.float64).mean(0)
+
+
+def iris_centre(cams: list[Camera], views: dict) -> np.ndarray | None:
+    """3-D iris centre from iris polylines {camera: (P, 2)} in ≥ 2 views."""
+    return triangulate_marks(cams, {c: ellipse_centre(p) for c, p in views.items()})
+
+
+def gaze_direction(look_at: str, T_head: np.ndarray, iris: np.ndarray, cams: list[Camera]) -> np.ndarray | None:
+    """Unit gaze direction for ``look_at`` = "forward" (head +Z) or a camera name; None if unknown."""
+    if look_at == "forward":
+        d = T_head[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    else:
+        cam = next((c for c in cams if c.name == look_at), None)
+        if cam is None:
+            return None
+        d = cam.centre - iris
+    return d / np.linalg.norm(d)
+
+
+def eye_depth(eye: dict) -> float:
+    """Distance from the eyeball centre to the iris centre (template ``eyes`` entry)."""
+    if "iris_depth" in eye:
+        return float(eye["iris_depth"])
+    r, ri = float(eye.get("radius", 0.012)), float(eye.get("iris_radius", 0.0059))
+    return float(np.sqrt(max(r * r - ri * ri, 0.0)))

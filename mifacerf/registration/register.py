@@ -1,0 +1,599 @@
+"""Registration of a light-stage capture into a morphable model in correspondence (paper §3–4).
+
+``register_capture(CAPTURE)`` — what ``mifacerf register`` runs. It reads only the capture
+folder (manifest, images, ``hand/``) and writes a registration folder
+(:mod:`mifacerf.registered`, default ``CAPTURE/registration/``):
+
+1. **proxies** per (expression, camera) (:mod:`.proxies`, cached);
+2. **dot filter** tuned on the neutral, **dot-strength maps** per view (:mod:`.dots`);
+3. **base model** — the neutral: every template fiducial snapped from the user's position
+   and triangulated from the views (:mod:`.snap`, :mod:`.triangulate`); the template's
+   other vertices placed relative to them (moving-least-squares, :mod:`.morph`);
+4. **every other expression**, one at a time, the one most similar to those already done
+   first: initial estimate by a 3-D morph of the coarse mesh from the most similar
+   registered expression (per point, distance-weighted deformation metric), then the
+   progressive snap-to with visibility ray-traced on the current estimate;
+5. **head pose, teeth, eyes** (:mod:`.eyes_teeth`), **lips and eyelids** relaxed onto the
+   rotoscoped curves (:mod:`.contours`);
+6. **dot removal** from every OLAT image (:mod:`.dot_removal`);
+7. **texture coordinates** and per-vertex visibility (:mod:`.texcoords`);
+8. a per-expression report (registered fraction, threshold schedule, everything that could
+   not be registered and why). Already registered expressions are skipped unless ``force``.
+
+Status per vertex: 1 registered (snapped to its dot; or placed from data: a coarse point
+clicked by the user, a margin fitted to rotoscoped curves, teeth from marks, extra vertices
+placed from registered fiducials); 0 predicted only (flagged; never presented as data).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import Capture
+from ..registered import RegisteredExpression, RegistrationWriter
+from . import eyes_teeth as ET
+from .contours import curve_residuals, propagate, relax_margin, rings
+from .dot_removal import Inpainter, dot_mask
+from .dots import DotFilter, face_mask, peak_near
+from .hand import HandInputs, Template, read_hand_inputs
+from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
+from .proxies import proxies_for
+from .snap import Views, dot_graph, progressive_snap, snap
+from .texcoords import texture_coordinates
+from .triangulate import triangulate
+from .visibility import Visibility
+
+
+class RegistrationInputError(ValueError):
+    """Registration cannot start: the message says which input is missing or unusable."""
+
+
+@dataclass
+class Options:
+    """Tunable parameters (lengths in pixel footprints at the stage centre)."""
+
+    radius_px: float = 3.0          #: 3-D search radius of the progressive snap
+    neutral_radius_px: float = 2.5  #: search radius about the user's template positions (neutral)
+    step_px: float = 0.5            #: grid spacing of the coarse 3-D search
+    decay: float = 0.8              #: threshold multiplier per level
+    floor: float = 0.15             #: lowest threshold, as a fraction of the initial one
+    min_strength: float = 0.8       #: ... and never below this (≈ one clear view, in dot-strength units)
+    max_reproj: float = 1.0         #: views must agree to this many pixels
+    min_cos: float = 0.2            #: views more oblique than this (cosine) are not used for a dot
+    cone_deg: float = 60.0          #: cone omitted from the diffuse proxy
+    removal_margin_px: float = 1.0  #: dot removal radius beyond the dot's image radius
+    remove_dots: bool = True
+    movable_rings: int = 2          #: non-fiducial vertices this close to a margin follow it
+
+
+@dataclass
+class Expr:
+    """Working state of one expression."""
+
+    name: str
+    fields: dict = field(default_factory=dict)      # camera -> (L, H, W, 3) float16
+    diffuse: dict = field(default_factory=dict)     # camera -> (H, W, 3)
+    report: dict = field(default_factory=dict)
+    flags: list = field(default_factory=list)
+
+
+class Registrar:
+    """Holds the capture, the hand inputs and the expressions registered so far."""
+
+    def __init__(self, capture: Capture, out: Path, options: Options | None = None, log=None,
+                 hand: HandInputs | None = None):
+        self.cap = capture
+        self.opt = options or Options()
+        self.log = log or (lambda msg: None)
+        self.hand = hand or read_hand_inputs(capture.root, capture.camera_names)
+        if self.hand.template is None:
+            raise RegistrationInputError(
+                f"{capture.root / 'hand' / 'template.json'}: no usable template "
+                f"({'; '.join(self.hand.problems) or 'missing'}); registration needs the base mesh a user built "
+                "on the neutral (docs/registration.md)")
+        self.tpl: Template = self.hand.template
+        self.cams = list(capture.rig.cameras)
+        self.names = [c.name for c in self.cams]
+        self.camd = {c.name: c for c in self.cams}
+        self.fp = float(np.median([c.pixel_footprint(np.linalg.norm(c.centre)) for c in self.cams]))
+        self.vis = Visibility(self.tpl.triangles, self.tpl.n_vertices, tol=max(0.5 * self.fp, 5e-4))
+        self.writer = RegistrationWriter(out, capture, self.tpl.to_dict())
+        self.registered: dict[str, RegisteredExpression] = {}
+        self.dots = self.tpl.dot_ids
+        self.is_dot = self.tpl.is_dot
+        self.neighbours = dot_graph(self.tpl.n_vertices, self.tpl.triangles, self.is_dot)
+        teeth = self.tpl.teeth_ids()
+        margins = self.tpl.margin_ids()
+        self.teeth_ids = teeth
+        self.extras = np.setdiff1d(np.flatnonzero(~self.is_dot), teeth)
+        if margins.size:
+            dist = rings(self.tpl.n_vertices, self.tpl.triangles, margins, self.opt.movable_rings)
+            mov = np.flatnonzero((dist >= 0) & ~self.is_dot)
+            self.movable = np.setdiff1d(mov, teeth)
+        else:
+            self.movable = np.zeros(0, np.int64)
+        self.neutral = next((e.name for e in capture.expressions if e.category == "neutral"),
+                            capture.expression_names[0])
+        self.filter: DotFilter | None = None
+        if "dot_filter" in self.writer.meta:
+            self.filter = DotFilter.from_dict(self.writer.meta["dot_filter"])
+        self.coarse_nbhds = coarse_neighbourhoods(len(self.tpl.coarse), self.tpl.coarse_triangles)
+
+    # ------------------------------------------------------------------ inputs
+    def load(self, name: str, need_fields: bool) -> Expr:
+        e = Expr(name)
+        for cam in self.names:
+            f = None
+            if need_fields:
+                f = self.cap.field(name, cam).astype(np.float16)
+                e.fields[cam] = f
+            p = proxies_for(self.cap, name, cam, None if f is None else f.astype(np.float32), self.opt.cone_deg)
+            e.diffuse[cam] = p.diffuse
+        return e
+
+    def coarse_points(self, name: str, flags: list) -> tuple[dict, dict]:
+        """Known coarse points {vertex id: (3,)} triangulated from the user's clicks, and a summary."""
+        cc = self.hand.coarse.get(name)
+        summary = {"given": 0, "used": 0, "missing": [], "seen_by_fewer_than_two_cameras": [],
+                   "inconsistent_clicks": []}
+        known = {}
+        if cc is None:
+            flags.append("no coarse points for this expression (hand/coarse_points.json): initial estimate "
+                         "is the most similar registered expression, unmorphed")
+            summary["missing"] = self.tpl.coarse.tolist()
+            return known, summary
+        for vid in self.tpl.coarse:
+            vid = int(vid)
+            clicks = cc.clicks.get(vid, {})
+            if vid not in cc.clicks and vid not in cc.positions:
+                summary["missing"].append(vid)
+                continue
+            summary["given"] += 1
+            if len(clicks) >= 2:
+                uv = np.full((len(self.cams), 1, 2), np.nan)
+                for cam, p in clicks.items():
+                    uv[self.names.index(cam), 0] = p
+                tr = triangulate(self.cams, uv, max_error=3.0)
+                if tr.ok[0] and tr.max_error[0] <= 3.0:
+                    known[vid] = tr.points[0]
+                    continue
+                summary["inconsistent_clicks"].append(vid)
+            elif vid in cc.positions:
+                known[vid] = cc.positions[vid]
+                continue
+            else:
+                summary["seen_by_fewer_than_two_cameras"].append(vid)
+        summary["used"] = len(known)
+        for key, what in (("missing", "missing"), ("seen_by_fewer_than_two_cameras", "seen by fewer than two cameras"),
+                          ("inconsistent_clicks", "with inconsistent clicks (> 3 px apart)")):
+            if summary[key]:
+                flags.append(f"coarse point(s) {summary[key]} {what}: left out of the coarse mesh")
+        return known, summary
+
+    # ------------------------------------------------------------------ dots
+    def ensure_filter(self, e: Expr) -> None:
+        if self.filter is not None:
+            return
+        V = self.tpl.vertices
+        vis = self.vis(V, self.cams, min_cos=0.3)
+        uvs = {}
+        for c, cam in enumerate(self.cams):
+            ids = self.dots[vis[c, self.dots]]
+            uvs[cam.name] = cam.project(V[ids])[0]
+        self.filter = DotFilter.fit(e.diffuse, uvs, self.tpl.dot_radius / self.fp)
+        self.writer.set_meta("dot_filter", self.filter.to_dict())
+
+    def views(self, e: Expr) -> Views:
+        return Views(self.cams, [self.filter.strength(e.diffuse[n], n) for n in self.names])
+
+    def register_dots(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float) -> tuple:
+        o = self.opt
+        vis = self.vis(pred, self.cams, min_cos=o.min_cos)
+        r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius_px * self.fp,
+                             step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
+                             max_reproj=o.max_reproj)
+        X, snapped = r.X.copy(), r.snapped.copy()
+        # polish: visibility from the registered mesh, then a small re-snap of every registered dot
+        vis2 = self.vis(X, self.cams, min_cos=o.min_cos)
+        ids = self.dots[snapped[self.dots]]
+        p = snap(views, X[ids], vis2[:, ids], radius=1.0 * self.fp, step=0.25 * self.fp, max_reproj=o.max_reproj)
+        good = p.ok & (p.strength >= 0.5 * o.min_strength)
+        X[ids[good]] = p.X[good]
+        reproj = np.full(len(X), np.nan)
+        reproj[ids[good]] = p.reproj[good]
+        nviews = np.zeros(len(X), int)
+        nviews[ids[good]] = p.n_views[good]
+        # two template dots on one image dot: keep the one nearer its prediction
+        dup = self._duplicates(X, snapped, pred)
+        if dup.size:
+            snapped[dup] = False
+            e.flags.append(f"dots {dup.tolist()} snapped onto a dot already taken: reverted to prediction")
+            X[dup] = pred[dup]
+        e.report.update({
+            "threshold_schedule": [round(float(t), 4) for t in r.schedule],
+            "accepted_per_level": [int(a) for a in r.accepted_per_level],
+            "snap_attempts": int(r.attempts),
+            "reprojection_px": _stats(reproj[self.dots]),
+            "views_per_dot": _stats(nviews[self.dots][nviews[self.dots] > 0].astype(float)),
+        })
+        return X, snapped, r
+
+    def _duplicates(self, X, snapped, pred) -> np.ndarray:
+        from scipy.spatial import cKDTree
+
+        ids = self.dots[snapped[self.dots]]
+        if len(ids) < 2:
+            return np.zeros(0, np.int64)
+        pairs = cKDTree(X[ids]).query_pairs(max(self.tpl.dot_radius, 0.5 * self.fp), output_type="ndarray")
+        out = []
+        for a, b in pairs:
+            i, j = ids[a], ids[b]
+            out.append(i if np.linalg.norm(X[i] - pred[i]) > np.linalg.norm(X[j] - pred[j]) else j)
+        return np.unique(np.array(out, np.int64))
+
+    # ------------------------------------------------------------------ the rest of the template
+    def place_extras(self, V_src: np.ndarray, src_ok: np.ndarray, X: np.ndarray, snapped: np.ndarray,
+                     ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of non-fiducial vertices ``ids`` carried from ``V_src`` by the registered dots."""
+        anchors = self.dots[snapped[self.dots] & src_ok[self.dots]]
+        if len(ids) == 0 or len(anchors) < 4:
+            return V_src[ids].copy(), np.zeros(len(ids), bool)
+        P = mls_affine(V_src[anchors], X[anchors], V_src[ids], k=16)
+        return P, np.ones(len(ids), bool)
+
+    def relax_contours(self, name: str, V: np.ndarray, status: np.ndarray, e: Expr) -> np.ndarray:
+        rot = self.hand.rotoscope.get(name)
+        out = {}
+        V0 = V.copy()
+        relaxed_any = []
+        for mname, ids in self.tpl.margins.items():
+            views = {} if rot is None else {c: p for c, p in rot.curves.get(mname, {}).items() if c in self.camd}
+            if len(views) < 2:
+                out[mname] = "not rotoscoped in two views: morphed from the reference only (predicted)"
+                e.flags.append(f"{mname}: not rotoscoped in ≥ 2 views; left at the morph (status 0)")
+                status[ids] = 0
+                continue
+            before = float(np.sqrt(np.mean([np.mean(curve_residuals(self.camd[c], V[ids], p) ** 2)
+                                            for c, p in views.items()])))
+            Xn = relax_margin(V[ids], views, self.camd)
+            after = float(np.sqrt(np.mean([np.mean(curve_residuals(self.camd[c], Xn, p) ** 2)
+                                           for c, p in views.items()])))
+            V[ids] = Xn
+            status[ids] = 1
+            relaxed_any.append(ids)
+            out[mname] = {"views": sorted(views), "rms_px_before": round(before, 3), "rms_px_after": round(after, 3)}
+        if relaxed_any and self.movable.size:
+            margin_ids = np.unique(np.concatenate(relaxed_any))
+            V = propagate(V0, V, self.tpl.triangles, margin_ids, self.movable)
+        e.report["lips_eyelids"] = out
+        return V
+
+    def head_marks(self, name: str) -> dict:
+        """Triangulated ear / nose-bridge marks of an expression {name: (3,)}."""
+        rot = self.hand.rotoscope.get(name)
+        out = {}
+        for pname in ("ear_L", "ear_R", "nose_bridge"):
+            if rot is not None and pname in rot.points:
+                p = ET.triangulate_marks(self.cams, rot.points[pname])
+                if p is not None:
+                    out[pname] = p
+        return out
+
+    def head_pose(self, name: str, X: np.ndarray, status: np.ndarray, e: Expr) -> np.ndarray:
+        if name == self.neutral:
+            e.report["head_pose"] = {"source": "the neutral defines the head frame"}
+            return np.eye(4)
+        ref = self.writer.meta.get("head_points_neutral", {})
+        marks = self.head_marks(name)
+        common = [k for k in ("ear_L", "ear_R", "nose_bridge") if k in marks and k in ref]
+        if len(common) == 3:
+            T = ET.rigid_from_points(np.array([ref[k] for k in common]), np.array([marks[k] for k in common]))
+            e.report["head_pose"] = {"source": "ear and nose-bridge marks"}
+            return T
+        hp = self.tpl.head_points
+        N = self.registered[self.neutral]
+        if len(hp) == 3 and all(status[v] == 1 and N.status[v] == 1 for v in hp.values()):
+            ids = np.array([hp[k] for k in sorted(hp)])
+            e.report["head_pose"] = {"source": "registered ear / nose-bridge vertices"}
+            return ET.rigid_from_points(N.vertices[ids], X[ids])
+        ok = self.dots[(status[self.dots] == 1) & (N.status[self.dots] == 1)]
+        e.flags.append("head pose: ear / nose-bridge points not marked; fitted rigidly to the most rigid "
+                       "third of the registered fiducials instead")
+        e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no marks)"}
+        return ET.robust_rigid(N.vertices[ok], X[ok])
+
+    def place_teeth(self, name: str, V: np.ndarray, status: np.ndarray, T_head: np.ndarray, e: Expr):
+        teeth = np.full((2, 4, 4), np.nan)
+        if not self.tpl.teeth:
+            return teeth
+        base = self.registered[self.neutral].vertices if name != self.neutral else self.tpl.vertices
+        up = self.tpl.teeth.get("upper", np.zeros(0, np.int64))
+        lo = self.tpl.teeth.get("lower", np.zeros(0, np.int64))
+        teeth[0] = T_head
+        info = {"upper": "rigid with the head"}
+        T_lo = T_head
+        if name == self.neutral:
+            T_lo = np.eye(4)
+            info["lower"] = "the template (neutral)"
+            status[lo] = 1
+        else:
+            rot = self.hand.rotoscope.get(name)
+            mark = None
+            if rot is not None and "lower_teeth" in rot.points:
+                mark = ET.triangulate_marks(self.cams, rot.points["lower_teeth"])
+            ref = self.tpl.lower_teeth_point
+            if mark is not None and ref is not None:
+                T_lo = ET.lower_teeth_transform(T_head, ref, mark)
+                info["lower"] = "marked point + head rotation"
+                status[lo] = 1
+            else:
+                info["lower"] = "no lower-teeth mark: moved with the head (predicted)"
+                e.flags.append("lower teeth: no marked point in ≥ 2 views; moved with the head (status 0)")
+                status[lo] = 0
+        status[up] = 1
+        teeth[1] = T_lo
+        V[up] = ET.apply(T_head, base[up])
+        V[lo] = ET.apply(T_lo, base[lo])
+        e.report["teeth"] = info
+        return teeth
+
+    def eye_centres(self, T_head: np.ndarray) -> np.ndarray:
+        rel = self.writer.meta.get("eyes_head_frame")
+        out = np.full((2, 3), np.nan)
+        for i, side in enumerate(("L", "R")):
+            if rel and rel.get(side) is not None:
+                out[i] = ET.apply(T_head, np.asarray(rel[side])[None])[0]
+            elif side in self.tpl.eyes and "centre" in self.tpl.eyes[side]:
+                out[i] = ET.apply(T_head, np.asarray(self.tpl.eyes[side]["centre"])[None])[0]
+        return out
+
+    # ------------------------------------------------------------------ one expression
+    def register(self, name: str) -> RegisteredExpression:
+        t0 = time.time()
+        o = self.opt
+        e = self.load(name, need_fields=o.remove_dots)
+        cat = self.cap.expressions[self.cap.expression_index(name)].category
+        e.report.update({"category": cat})
+        self.ensure_filter(e)
+        views = self.views(e)
+        known, csum = self.coarse_points(name, e.flags)
+        e.report["coarse_points"] = csum
+        T = self.tpl.n_vertices
+        if name == self.neutral:
+            pred = self.tpl.vertices.copy()
+            src = self.tpl.vertices
+            src_ok = np.ones(T, bool)
+            choice_names = ["template (user-placed on the neutral)"]
+            choice = np.zeros(T, int)
+            radius = o.neutral_radius_px
+            sources = {0: (src, src_ok)}
+        else:
+            pred, choice, choice_names, radius = self.predict(name, known, e)
+            sources = {k: (self.registered[n].vertices, self.registered[n].status == 1)
+                       for k, n in enumerate(choice_names)}
+        e.report["reference"] = {n: int((choice == k).sum()) for k, n in enumerate(choice_names)}
+        X, snapped, _ = self.register_dots(e, views, pred, known, radius)
+        status = np.zeros(T, np.int8)
+        status[self.dots[snapped[self.dots]]] = 1
+        for vid in known:  # coarse points placed from the user's clicks
+            status[vid] = 1
+        not_reg = self.dots[status[self.dots] != 1]
+        if not_reg.size:
+            e.flags.append(f"{len(not_reg)} fiducial(s) could not be registered (no dot found above the "
+                           f"strength floor in ≥ 2 views): kept at the morph prediction with status 0")
+        # extras relative to the registered dots (per reference expression)
+        V = X.copy()
+        ex = self.extras
+        ex_status = np.zeros(len(ex), bool)
+        for k, (Vs, ok) in sources.items():
+            sel = choice[ex] == k
+            if sel.any():
+                P, placed = self.place_extras(Vs, ok, X, snapped, ex[sel])
+                V[ex[sel]] = P
+                ex_status[sel] = placed
+        status[ex] = ex_status.astype(np.int8)
+        T_head = self.head_pose(name, V, status, e)
+        if name == self.neutral:
+            marks = self.head_marks(name)
+            hp = self.tpl.head_points
+            ref = {k: marks.get(k, V[hp[k]] if k in hp else None) for k in ("ear_L", "ear_R", "nose_bridge")}
+            self.writer.set_meta("head_points_neutral", {k: np.asarray(v).tolist() for k, v in ref.items()
+                                                         if v is not None})
+        teeth = self.place_teeth(name, V, status, T_head, e)
+        V = self.relax_contours(name, V, status, e)
+        eyes = self.eye_centres(T_head)
+        uv, visible = texture_coordinates(V, self.cams, self.vis)
+        reg = RegisteredExpression(name, V, status, uv, visible, eyes, teeth, T_head)
+        nd = len(self.dots)
+        e.report.update({
+            "n_dots": int(nd),
+            "dots_registered": int((status[self.dots] == 1).sum()),
+            "registered_fraction": round(float((status[self.dots] == 1).mean()) if nd else 1.0, 4),
+            "dots_not_registered": not_reg.tolist(),
+            "vertices_predicted_only": int((status == 0).sum()),
+        })
+        if o.remove_dots:
+            e.report["dot_removal"] = self.remove_dots(e, reg)
+        e.report["flags"] = e.flags
+        e.report["time_s"] = round(time.time() - t0, 2)
+        self.writer.write_expression(reg, e.report)
+        self.registered[name] = reg
+        return reg
+
+    def predict(self, name: str, known: dict, e: Expr):
+        """Initial estimate: per point, a 3-D morph of the coarse mesh from the most similar registered expression."""
+        o = self.opt
+        regs = list(self.registered)
+        coarse = self.tpl.coarse
+        N = self.registered[self.neutral]
+        cN = np.full((len(coarse), 3), np.nan)
+        for j, vid in enumerate(coarse):
+            if int(vid) in known:
+                cN[j] = known[int(vid)]
+        usable = np.isfinite(cN).all(1)
+        tris_ok = usable[self.tpl.coarse_triangles].all(1).sum() if len(self.tpl.coarse_triangles) else 0
+        if usable.sum() < 3 or tris_ok == 0:
+            # no coarse mesh: the most similar expression by whatever coarse points exist, else the neutral
+            e.flags.append("coarse mesh unusable (fewer than three coarse points / no complete triangle): "
+                           "initial estimate = neutral, rigidly aligned to the known points, wider search")
+            pred = N.vertices.copy()
+            if usable.sum() >= 3:
+                Tr = ET.rigid_from_points(N.vertices[coarse[usable]], cN[usable])
+                pred = ET.apply(Tr, pred)
+            return pred, np.zeros(len(pred), int), [self.neutral], 2 * o.radius_px
+        cn = N.vertices[coarse]
+        D = np.stack([deformation_distances(cn, self.registered[r].vertices[coarse], cN, self.coarse_nbhds)
+                      for r in regs])
+        choice = choose_references(N.vertices, cn, D)
+        pred = np.empty_like(N.vertices)
+        for k, r in enumerate(regs):
+            sel = choice == k
+            if sel.any():
+                m = CoarseMorph(self.registered[r].vertices[coarse], cN, self.tpl.coarse_triangles)
+                pred[sel] = m(self.registered[r].vertices[sel])
+        return pred, choice, regs, o.radius_px
+
+    # ------------------------------------------------------------------ dot removal
+    def remove_dots(self, e: Expr, reg: RegisteredExpression) -> dict:
+        ids = self.dots[reg.status[self.dots] == 1]
+        before, after, npix = [], [], 0
+        for c, cam in enumerate(self.cams):
+            sel = ids[reg.visible[c, ids]]
+            uv, depth = cam.project(reg.vertices[sel])
+            focal = np.sqrt(cam.K[0, 0] * cam.K[1, 1])
+            r_px = self.tpl.dot_radius * focal / depth + self.opt.removal_margin_px
+            mask = dot_mask((cam.height, cam.width), uv, r_px)
+            inp = Inpainter(mask, face_mask(e.diffuse[cam.name], 0.01))
+            field_ = e.fields[cam.name]
+            values = inp.fill(field_) if len(inp) else np.zeros((len(field_), 0, 3), np.float32)
+            self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
+            npix += len(inp)
+            d0 = e.diffuse[cam.name]
+            d1 = inp.apply(d0)
+            s = self.filter.scales.get(cam.name, 1.0)
+            r0 = np.maximum(self.filter.response(d0), 0) / s
+            r1 = np.maximum(self.filter.response(d1), 0) / s
+            if len(uv):
+                before.append(peak_near(r0, uv, 1.0)[1])
+                after.append(peak_near(r1, uv, 1.0)[1])
+        b = float(np.mean(np.concatenate(before))) if before else float("nan")
+        a = float(np.mean(np.concatenate(after))) if after else float("nan")
+        return {"pixels": int(npix), "response_before": round(b, 4), "response_after": round(a, 4)}
+
+    # ------------------------------------------------------------------ eyes (after all expressions)
+    def finish_eyes(self) -> dict:
+        """Average eye centres in the head frame over the expressions looking along a known direction."""
+        est = {"L": [], "R": []}
+        used = []
+        for name, reg in self.registered.items():
+            rot = self.hand.rotoscope.get(name)
+            if rot is None or not rot.eyes_look_at:
+                continue
+            Tinv = np.linalg.inv(reg.head_pose)
+            for side in ("L", "R"):
+                views = {c: p for c, p in rot.curves.get(f"iris_{side}", {}).items() if c in self.camd}
+                if len(views) < 2:
+                    continue
+                c3 = ET.iris_centre(self.cams, views)
+                if c3 is None:
+                    continue
+                d = ET.gaze_direction(rot.eyes_look_at, reg.head_pose, c3, self.cams)
+                if d is None:
+                    continue
+                depth = ET.eye_depth(self.tpl.eyes.get(side, {}))
+                est[side].append(ET.apply(Tinv, (c3 - depth * d)[None])[0])
+                used.append(f"{name}:{side}")
+        rel = {s: (np.mean(v, axis=0).tolist() if v else None) for s, v in est.items()}
+        info = {"head_frame_centres": rel, "from": used,
+                "spread_m": {s: (float(np.linalg.norm(np.std(v, axis=0))) if len(v) > 1 else None)
+                             for s, v in est.items()}}
+        self.writer.set_meta("eyes_head_frame", rel)
+        self.writer.set_meta("eyes", info)
+        # update every registered expression's eye centres
+        for name, reg in self.registered.items():
+            ec = self.eye_centres(reg.head_pose)
+            if not np.allclose(np.nan_to_num(ec, nan=1e9), np.nan_to_num(reg.eye_centres, nan=1e9)):
+                reg.eye_centres = ec
+                self.writer.write_expression(reg, self.writer.meta["expressions"][name])
+        return info
+
+
+def _stats(x: np.ndarray) -> dict:
+    x = np.asarray(x, np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"median": None, "p95": None}
+    return {"median": round(float(np.median(x)), 4), "p95": round(float(np.percentile(x, 95)), 4)}
+
+
+def order_expressions(reg: Registrar, todo: list[str]) -> list[str]:
+    """Greedy order: next the expression whose coarse points are closest (after a rigid alignment)
+    to one already registered (a proxy for the paper's 'expands ... one at a time')."""
+    coarse = reg.tpl.coarse
+    pts = {}
+    for n in todo + list(reg.registered):
+        cc = reg.hand.coarse.get(n)
+        P = np.full((len(coarse), 3), np.nan)
+        if cc is not None:
+            for j, vid in enumerate(coarse):
+                if int(vid) in cc.positions:
+                    P[j] = cc.positions[int(vid)]
+        pts[n] = P
+
+    def dist(a, b):
+        m = np.isfinite(pts[a]).all(1) & np.isfinite(pts[b]).all(1)
+        if m.sum() < 3:
+            return np.inf
+        T = ET.rigid_from_points(pts[a][m], pts[b][m])
+        return float(np.sqrt(np.mean(np.sum((ET.apply(T, pts[a][m]) - pts[b][m]) ** 2, 1))))
+
+    done = list(reg.registered) or [reg.neutral]
+    order, left = [], [n for n in todo if n not in done]
+    while left:
+        best = min(left, key=lambda n: (min(dist(d, n) for d in done), todo.index(n)))
+        order.append(best)
+        done.append(best)
+        left.remove(best)
+    return order
+
+
+def register_capture(capture, out=None, expressions=None, force: bool = False, options: Options | None = None,
+                     progress: bool = True, log=None) -> Path:
+    """Register ``capture`` (a path or :class:`Capture`); returns the registration folder."""
+    from tqdm.auto import tqdm
+
+    cap = capture if isinstance(capture, Capture) else Capture(capture)
+    out = Path(out) if out is not None else cap.root / "registration"
+    reg = Registrar(cap, out, options, log)
+    names = list(expressions) if expressions else cap.expression_names
+    unknown = [n for n in names if n not in cap.expression_names]
+    if unknown:
+        raise RegistrationInputError(f"unknown expression(s): {', '.join(unknown)}")
+    if force:
+        reg.writer.meta["expressions"] = {}
+        reg.writer.meta.pop("dot_filter", None)
+        reg.filter = None
+    reg.writer.set_meta("options", asdict(reg.opt))
+    reg.writer.set_meta("hand_input_problems", reg.hand.problems)
+    for n in cap.expression_names:
+        if reg.writer.done(n):
+            reg.registered[n] = RegisteredExpression.load(out / "expressions" / f"{n}.npz", n)
+    todo = [n for n in names if n not in reg.registered]
+    if reg.neutral not in reg.registered and reg.neutral not in todo:
+        todo.insert(0, reg.neutral)  # everything is registered relative to the neutral
+    bar = tqdm(total=len(todo), desc="register", unit="expr", disable=not progress)
+    if reg.neutral in todo:
+        bar.set_postfix_str(reg.neutral)
+        reg.register(reg.neutral)
+        todo.remove(reg.neutral)
+        bar.update(1)
+    for n in order_expressions(reg, todo):
+        bar.set_postfix_str(n)
+        reg.register(n)
+        bar.update(1)
+    bar.close()
+    reg.finish_eyes()
+    return out

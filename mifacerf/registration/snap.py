@@ -1,0 +1,279 @@
+"""The 3-D snap-to and the progressive snap-to algorithm (paper §4.1).
+
+**Dot strength** of a 3-D point: project it into every view where it is visible and sum
+the dot-strength maps (:mod:`.dots`) there, bilinearly sampled. Views where the point is
+occluded (ray-traced against the current mesh estimate) or seen too obliquely are left out.
+
+**3-D snap** (:func:`snap`): "searches in a small 3D neighborhood to find the location that
+yields the best dot-strength" — vectorised over many points at once: a ball of candidate
+offsets (``radius``, spacing ``step``) about each start, then a finer ball (spacing
+``step / 3``) about the best; finally each view's sub-pixel peak of the strength map next to
+the point's projection is triangulated (:mod:`.triangulate`), which gives the point to a
+fraction of a pixel. A point counts as snapped only when at least two views agree (the
+triangulation's worst reprojection error is below ``max_reproj`` pixels).
+
+**Progressive snap** (:func:`progressive_snap`), as in the paper:
+
+1. ``S`` = the known points (the coarse points, themselves snapped from the user's position);
+2. their offsets = known position − morph prediction;
+3. threshold = the strongest dot strength of the known points;
+4. for every point bordering ``S``: predicted offset = mean offset of its neighbours in ``S``;
+   snap from prediction + offset; accept (add to ``S``, store the offset) if the strength is
+   at least the threshold;
+5. repeat 4 while points are added;
+6. lower the threshold (× ``decay``); while it stays above ``floor`` × the initial threshold
+   (and above ``min_strength``), go to 4.
+
+Dots never reached stay at their prediction (+ the neighbours' mean offset) and are
+reported as not registered (status 0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..camera import Camera
+from .dots import bilinear, peak_near
+from .triangulate import triangulate
+
+
+def ball(radius: float, step: float) -> np.ndarray:
+    """Offsets (K, 3) of a cubic grid with spacing ``step`` inside a ball of ``radius`` (origin first)."""
+    n = int(np.floor(radius / step + 1e-9))
+    g = np.arange(-n, n + 1) * step
+    X, Y, Z = np.meshgrid(g, g, g, indexing="ij")
+    P = np.stack([X.ravel(), Y.ravel(), Z.ravel()], 1)
+    P = P[np.linalg.norm(P, axis=1) <= radius + 1e-12]
+    return P[np.argsort(np.linalg.norm(P, axis=1), kind="stable")]
+
+
+class Views:
+    """The dot-strength maps of one expression: ``cams`` (C cameras), ``maps`` (C, H, W)."""
+
+    def __init__(self, cams: list[Camera], maps):
+        self.cams = list(cams)
+        self.maps = [np.asarray(m, np.float32) for m in maps]
+
+    def per_view(self, X: np.ndarray) -> np.ndarray:
+        """(C, M) strength of points X (M, 3) in each view (0 outside the image)."""
+        out = np.zeros((len(self.cams), len(X)))
+        for c, (cam, m) in enumerate(zip(self.cams, self.maps)):
+            uv, _ = cam.project(X)
+            out[c] = bilinear(m, uv)
+        return out
+
+    def strength(self, X: np.ndarray, vis: np.ndarray) -> np.ndarray:
+        """(M,) dot strength: the sum over the views where each point is visible (``vis`` (C, M))."""
+        return (self.per_view(X) * vis).sum(0)
+
+
+@dataclass
+class SnapResult:
+    """``X`` (M, 3) snapped positions; ``strength`` (M,); ``n_views`` (M,) views that agreed;
+    ``ok`` (M,) triangulated from ≥ 2 agreeing views; ``reproj`` (M,) worst reprojection error (px)."""
+
+    X: np.ndarray
+    strength: np.ndarray
+    n_views: np.ndarray
+    ok: np.ndarray
+    reproj: np.ndarray
+
+
+def _grid_search(views: Views, X0: np.ndarray, vis: np.ndarray, offsets: np.ndarray, chunk: int,
+                 penalty: np.ndarray | None = None) -> np.ndarray:
+    best = np.empty_like(X0)
+    K = len(offsets)
+    for s in range(0, len(X0), chunk):
+        x = X0[s:s + chunk]
+        cand = (x[:, None, :] + offsets[None]).reshape(-1, 3)
+        v = np.repeat(vis[:, s:s + chunk], K, axis=1)
+        st = views.strength(cand, v).reshape(len(x), K)
+        if penalty is not None:
+            st = st - penalty[None]
+        k = np.argmax(st, axis=1)        # ties: the smallest offset (offsets sorted by length)
+        best[s:s + chunk] = x + offsets[k]
+    return best
+
+
+def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: float,
+         max_reproj: float = 1.0, min_view_strength: float = 0.25, chunk: int = 256,
+         prior: float = 0.4) -> SnapResult:
+    """3-D snap of points ``X0`` (M, 3) with visibility ``vis`` (C, M); see the module docstring.
+
+    ``prior``: the coarse search maximises ``strength − prior · (|offset| / radius)²``, a mild
+    preference for the predicted position that settles two-view ambiguities (a wrong pair of
+    dots on corresponding epipolar lines) in favour of the nearer candidate.
+    """
+    X0 = np.asarray(X0, np.float64).reshape(-1, 3)
+    M = len(X0)
+    if M == 0:
+        z = np.zeros(0)
+        return SnapResult(np.zeros((0, 3)), z, z.astype(int), z.astype(bool), z)
+    vis = np.asarray(vis, bool).reshape(len(views.cams), M)
+    offs = ball(radius, step)
+    Xc = _grid_search(views, X0, vis, offs, chunk, prior * (np.linalg.norm(offs, axis=1) / radius) ** 2)
+    Xf = _grid_search(views, Xc, vis, ball(step, step / 3.0), chunk)
+    # sub-pixel: per-view peaks next to the projection, triangulated
+    C = len(views.cams)
+    uv = np.full((C, M, 2), np.nan)
+    for c, (cam, m) in enumerate(zip(views.cams, views.maps)):
+        sel = np.flatnonzero(vis[c])
+        if sel.size == 0:
+            continue
+        p, _ = cam.project(Xf[sel])
+        pk, val = peak_near(m, p, 1.0)
+        good = (val >= min_view_strength) & (np.linalg.norm(pk - p, axis=1) <= 1.5)
+        uv[c, sel[good]] = pk[good]
+    tr = triangulate(views.cams, uv, max_error=max_reproj)
+    ok = tr.ok & (tr.max_error <= max_reproj)
+    moved = np.linalg.norm(np.where(ok[:, None], tr.points, Xf) - Xf, axis=1)
+    ok &= moved <= 2.0 * step
+    X = np.where(ok[:, None], tr.points, Xf)
+    strength = views.strength(X, vis)
+    return SnapResult(X, strength, np.where(ok, tr.n_views, 0), ok, np.where(ok, tr.max_error, np.nan))
+
+
+# --------------------------------------------------------------------------------- progressive snap
+def dot_graph(n_vertices: int, triangles: np.ndarray, is_dot: np.ndarray) -> list[np.ndarray]:
+    """Neighbours of each vertex among the dot vertices: joined by an edge, or through one non-dot vertex."""
+    import scipy.sparse as sp
+
+    F = np.asarray(triangles, np.int64).reshape(-1, 3)
+    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]])
+    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]])
+    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
+    A.data[:] = 1.0
+    nd = sp.diags((~np.asarray(is_dot)).astype(float))
+    A2 = A + A @ nd @ A
+    A2 = A2.tocsr()
+    A2.setdiag(0)
+    A2.eliminate_zeros()
+    dmask = np.asarray(is_dot)
+    out = []
+    for v in range(n_vertices):
+        nb = A2.indices[A2.indptr[v]:A2.indptr[v + 1]]
+        out.append(nb[dmask[nb]])
+    return out
+
+
+@dataclass
+class ProgressiveResult:
+    """``X`` (T, 3) positions (snapped dots, known points, the rest predicted + offset);
+    ``snapped`` (T,) bool; ``strength`` (T,) at the final position (NaN if never tried);
+    ``level`` (T,) the threshold step at which each point was accepted (-1 known, -2 never);
+    ``schedule`` the thresholds used; ``attempts`` total snap operations."""
+
+    X: np.ndarray
+    snapped: np.ndarray
+    strength: np.ndarray
+    level: np.ndarray
+    schedule: list = field(default_factory=list)
+    attempts: int = 0
+    accepted_per_level: list = field(default_factory=list)
+
+
+def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbours: list[np.ndarray],
+                     known: dict, vis: np.ndarray, radius: float, step: float, decay: float = 0.8,
+                     floor: float = 0.15, min_strength: float = 0.8, max_reproj: float = 1.0,
+                     known_radius: float | None = None) -> ProgressiveResult:
+    """The paper's progressive snap (module docstring).
+
+    ``pred`` (T, 3) morph predictions of all template vertices; ``dots`` ids to register;
+    ``neighbours`` per vertex its dot neighbours (:func:`dot_graph`); ``known`` {vertex id: (3,)}
+    known positions (coarse points); ``vis`` (C, T) visibility from the current mesh estimate.
+    ``radius`` / ``step`` of the 3-D search (metres); ``known_radius`` the search about a known
+    point (default ``radius / 2``).
+    """
+    pred = np.asarray(pred, np.float64)
+    T = len(pred)
+    X = pred.copy()
+    offset = np.full((T, 3), np.nan)
+    in_S = np.zeros(T, bool)
+    snapped = np.zeros(T, bool)
+    strength = np.full(T, np.nan)
+    level = np.full(T, -2, np.int64)
+    is_target = np.zeros(T, bool)
+    is_target[np.asarray(dots, np.int64)] = True
+    attempts = 0
+
+    # 1-2. known points, snapped when they are dots
+    kid = np.array(sorted(known), np.int64)
+    if kid.size:
+        KX = np.stack([np.asarray(known[k], np.float64) for k in kid])
+        kd = kid[is_target[kid]]
+        X[kid] = KX
+        if kd.size:
+            r = snap(views, KX[is_target[kid]], vis[:, kd], known_radius or radius / 2, step, max_reproj)
+            attempts += len(kd)
+            X[kd[r.ok]] = r.X[r.ok]
+            snapped[kd[r.ok]] = True
+            strength[kd] = r.strength
+        in_S[kid] = True
+        level[kid] = -1
+        offset[kid] = X[kid] - pred[kid]
+    # 3. initial threshold
+    ks = strength[kid[snapped[kid]]] if kid.size else np.zeros(0)
+    if ks.size:
+        t0 = float(np.max(ks))
+    else:  # no known dot: start from the strongest predictions
+        r = snap(views, pred[is_target], vis[:, is_target], radius, step, max_reproj)
+        t0 = float(np.max(r.strength, initial=len(views.cams)))
+    t_floor = max(floor * t0, min_strength)
+    schedule = []
+    last_start = np.full((T, 3), np.nan)
+    cache_X = np.full((T, 3), np.nan)
+    cache_s = np.full(T, -np.inf)
+    cache_ok = np.zeros(T, bool)
+    accepted_per_level = []
+    t = t0
+    lev = 0
+    while True:
+        schedule.append(t)
+        n_acc = 0
+        while True:
+            border = np.array([v for v in np.flatnonzero(is_target & ~in_S)
+                               if in_S[neighbours[v]].any()], np.int64)
+            if border.size == 0:
+                break
+            off = np.stack([np.nanmean(offset[neighbours[v][in_S[neighbours[v]]]], axis=0) for v in border])
+            start = pred[border] + off
+            redo = ~(np.linalg.norm(start - last_start[border], axis=1) < 0.1 * step)
+            if redo.any():
+                rb = border[redo]
+                r = snap(views, start[redo], vis[:, rb], radius, step, max_reproj)
+                attempts += len(rb)
+                last_start[rb] = start[redo]
+                cache_X[rb], cache_s[rb], cache_ok[rb] = r.X, r.strength, r.ok
+            acc = border[cache_ok[border] & (cache_s[border] >= t)]
+            X[border] = np.where(cache_ok[border, None], cache_X[border], start)
+            strength[border] = cache_s[border]
+            if acc.size == 0:
+                break
+            in_S[acc] = True
+            snapped[acc] = True
+            level[acc] = lev
+            offset[acc] = X[acc] - pred[acc]
+            n_acc += len(acc)
+        accepted_per_level.append(n_acc)
+        t *= decay
+        lev += 1
+        if t < t_floor * (1 - 1e-9):
+            break
+    # points never reached by propagation: one last try from distance-weighted offsets
+    rest = np.flatnonzero(is_target & ~in_S)
+    if rest.size and in_S.any():
+        sid = np.flatnonzero(in_S)
+        d = np.linalg.norm(pred[rest, None] - pred[None, sid], axis=-1)
+        w = 1.0 / (d + 1e-3) ** 2
+        off = (w @ offset[sid]) / w.sum(1, keepdims=True)
+        start = pred[rest] + off
+        r = snap(views, start, vis[:, rest], radius, step, max_reproj)
+        attempts += len(rest)
+        acc = r.ok & (r.strength >= t_floor)
+        X[rest] = np.where(acc[:, None], r.X, start)
+        strength[rest] = r.strength
+        snapped[rest[acc]] = True
+        level[rest[acc]] = lev
+        accepted_per_level.append(int(acc.sum()))
+    return ProgressiveResult(X, snapped, strength, level, schedule, attempts, accepted_per_level)
