@@ -357,13 +357,14 @@ class SkinRig:
             es = grid.slits[name]
             ce = H.EYE_CENTRE * np.array([sgn, 1, 1])
             rel = V0 - ce
-            # eye-local azimuth: + = lateral
-            az = np.arctan2(sgn * rel[:, 0], rel[:, 2])
-            a0 = np.arctan2(sgn * (V0[es.corners[0], 0] - ce[0]), V0[es.corners[0], 2] - ce[2])
-            a1 = np.arctan2(sgn * (V0[es.corners[1], 0] - ce[0]), V0[es.corners[1], 2] - ce[2])
-            a_med, a_lat = min(a0, a1), max(a0, a1)
-            t = np.clip((az - a_med) / (a_lat - a_med), 0.0, 1.0)
-            inside = (az > a_med) & (az < a_lat) & (rel[:, 2] > -0.004)
+            # position along the slit from the grid column (0 at the medial corner, 1 lateral):
+            # columns, not eye-centred angles, so the nose side never joins the lid motion
+            col = rc[:, 1]
+            t = (col - es.c0) / (es.c1 - es.c0)
+            if sgn < 0:   # the right eye's medial corner is its larger column
+                t = 1.0 - t
+            inside = (t > 0.0) & (t < 1.0) & (rel[:, 2] > -0.004) & (rc[:, 0] >= 0)
+            t = np.clip(t, 0.0, 1.0)
             P_up = np.where(inside, np.sin(np.pi * t ** 0.87), 0.0)
             P_lo = np.where(inside, np.sin(np.pi * t ** 1.15), 0.0)
             row = rc[:, 0]
@@ -385,7 +386,7 @@ class SkinRig:
 
         # ---- jaw -----------------------------------------------------------------------------
         q = y + 0.46 * (z - 0.06) + 0.12          # > 0 above the line under the jaw
-        J = smoothstep(-0.050, 0.000, q) * smoothstep(-0.030, 0.012, z)
+        J = smoothstep(-0.065, 0.002, q) * smoothstep(-0.050, 0.020, z)
         self.w_jaw = self.S_lo * J
         self.jaw_idx = np.nonzero(self.w_jaw > 1e-6)[0]
         # lip-margin curl: where and how much
@@ -492,3 +493,41 @@ class SkinRig:
             ce = H.EYE_CENTRE * np.array([sgn, 1, 1])
             eyes[name] = T_head @ affine(H.rot_y(gy) @ H.rot_x(-gpch), ce)
         return RigState(V, T_head, T_head @ T_jaw, eyes, lid, gap, Vh)
+
+
+# --------------------------------------------------------------------------------------------
+# validity checks (used by the tests)
+# --------------------------------------------------------------------------------------------
+def triangle_normals(V, F):
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    a = np.linalg.norm(n, axis=1)
+    return n / np.maximum(a, 1e-30)[:, None], 0.5 * a
+
+
+def interior_edges(F):
+    """Pairs of faces sharing an edge: (E, 2) face indices."""
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    fid = np.tile(np.arange(len(F)), 3)
+    key = np.sort(e, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    k = key[order]
+    same = np.all(k[1:] == k[:-1], axis=1)
+    i = np.nonzero(same)[0]
+    return np.stack([fid[order][i], fid[order][i + 1]], 1)
+
+
+def fold_report(V_ref, V_def, F, pairs=None):
+    """Compare a deformed mesh with a reference of the same topology.
+
+    Returns ``(min_area_ratio, n_folded_edges)``: the smallest triangle-area ratio deformed /
+    reference, and the number of edges whose two triangles were nearly coplanar in the reference
+    (normals within 60°) but face more than 120° apart in the deformed mesh (a fold)."""
+    if pairs is None:
+        pairs = interior_edges(F)
+    n0, a0 = triangle_normals(V_ref, F)
+    n1, a1 = triangle_normals(V_def, F)
+    ratio = a1 / np.maximum(a0, 1e-30)
+    c0 = np.einsum("ij,ij->i", n0[pairs[:, 0]], n0[pairs[:, 1]])
+    c1 = np.einsum("ij,ij->i", n1[pairs[:, 0]], n1[pairs[:, 1]])
+    folded = int(np.sum((c0 > 0.5) & (c1 < -0.5)))
+    return float(ratio[a0 > 1e-12].min()), folded

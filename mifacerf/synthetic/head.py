@@ -253,8 +253,8 @@ def column_angles() -> np.ndarray:
     """Azimuths of the grid columns (radians, increasing, from −π), symmetric about 0."""
     # target spacing (radians) as a function of |φ|
     knots = np.radians([0, 12, 34, 42, 80, 100, 180])
-    spacing = np.radians([1.05, 1.0, 1.0, 1.6, 2.2, 4.2, 4.6])
-    n_half = 92  # columns from 0 to π (exclusive of π counted once)
+    spacing = np.radians([1.1, 1.05, 1.1, 1.8, 2.8, 5.5, 6.5])
+    n_half = 72  # columns from 0 to π
     s = graded(n_half, knots / np.pi, spacing) * np.pi
     half = s[1:-1]
     phis = np.concatenate([-s[-1:], -half[::-1], [0.0], half])
@@ -263,16 +263,16 @@ def column_angles() -> np.ndarray:
 
 # rows per anchor segment and their grading (relative spacing at normalised arc length knots)
 ROW_SEGMENTS = (
-    # (n_rows, knots, spacing)         crown -> 0.085
-    (22, (0.0, 0.6, 1.0), (1.6, 1.3, 0.8)),
-    # 0.085 -> 0.050 (forehead)
-    (19, (0.0, 1.0), (1.0, 0.85)),
-    # 0.050 -> eye slit (brow, upper lid)
-    (18, (0.0, 0.5, 1.0), (1.0, 0.75, 0.55)),
+    # (n_rows, knots, spacing)         crown -> 0.075 (scalp)
+    (14, (0.0, 0.6, 1.0), (1.6, 1.3, 0.7)),
+    # 0.075 -> 0.028 (forehead)
+    (16, (0.0, 1.0), (1.0, 0.8)),
+    # 0.028 -> eye slit (brow, upper lid)
+    (16, (0.0, 0.5, 1.0), (1.0, 0.75, 0.55)),
     # eye slit -> mouth slit (lower lid, cheek, nose, upper lip)
-    (56, (0.0, 0.12, 0.3, 0.8, 1.0), (0.55, 0.8, 1.0, 0.85, 0.55)),
+    (48, (0.0, 0.12, 0.3, 0.8, 1.0), (0.55, 0.8, 1.0, 0.85, 0.55)),
     # mouth slit -> neck base (lower lip, chin, under-chin, neck)
-    (78, (0.0, 0.08, 0.25, 0.45, 1.0), (0.5, 0.8, 1.1, 1.5, 2.4)),
+    (56, (0.0, 0.08, 0.25, 0.45, 1.0), (0.5, 0.8, 1.1, 1.6, 2.8)),
 )
 
 
@@ -595,3 +595,37 @@ def _orient_outwards(V, F):
     a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum()
     return F if vol > 0 else F[:, [0, 2, 1]]
+
+
+# --------------------------------------------------------------------------------------------
+# caching
+# --------------------------------------------------------------------------------------------
+def grid_to_arrays(g: SkinGrid) -> dict:
+    out = dict(vertices=g.vertices, faces=g.faces, phis=g.phis, n_rows=np.array(g.n_rows),
+               grid_index=g.grid_index, vertex_rc=g.vertex_rc, lower_side=g.lower_side,
+               anchor_rows=np.array(g.anchor_rows), pole=np.array(g.pole),
+               cap_centre=np.array(g.cap_centre), row_arc=g.row_arc,
+               slit_names=np.array(list(g.slits)))
+    for k, s in g.slits.items():
+        out[f"slit_{k}_meta"] = np.array([s.row, s.c0, s.c1, s.corners[0], s.corners[1]])
+        out[f"slit_{k}_upper"] = s.upper
+        out[f"slit_{k}_lower"] = s.lower
+    return out
+
+
+def grid_from_arrays(d: dict) -> SkinGrid:
+    slits = {}
+    for k in [str(n) for n in d["slit_names"]]:
+        m = d[f"slit_{k}_meta"]
+        slits[k] = Slit(k, int(m[0]), int(m[1]), int(m[2]), d[f"slit_{k}_upper"], d[f"slit_{k}_lower"],
+                        (int(m[3]), int(m[4])))
+    return SkinGrid(d["vertices"], d["faces"], d["phis"], int(d["n_rows"]), d["grid_index"],
+                    d["vertex_rc"], d["lower_side"], slits, [int(a) for a in d["anchor_rows"]],
+                    int(d["pole"]), int(d["cap_centre"]), d["row_arc"])
+
+
+def load_skin_grid() -> SkinGrid:
+    """:func:`build_skin_grid`, cached on disk (see :mod:`.cache`)."""
+    from . import cache
+
+    return grid_from_arrays(cache.cached(cache.key("skin-grid"), lambda: grid_to_arrays(build_skin_grid())))
