@@ -36,12 +36,18 @@ def contact_sheet(capture_dir, out_png, camera: str | None = None, environment: 
     weights = light_basis(generated(environment), cap.rig.lights.directions)
     tiles = []
     names = cap.expression_names
+
+    def exposed(img):  # the brighter skin (90th percentile of lit pixels) at ~0.45 linear
+        lit = img.max(axis=-1)
+        level = np.percentile(lit[lit > 0], 90) if (lit > 0).any() else 1.0
+        return img * (0.45 / max(level, 1e-6))
+
     for name in (progress(names) if progress else names):
         field = cap.field(name, cam.name)
         one = field[key]
         lit = relight(field, weights)
-        tiles.append(label(tile8(one / max(np.percentile(one, 99.5), 1e-6) * 0.8, size=tile), f"{name}: 1 light"))
-        tiles.append(label(tile8(lit / max(np.percentile(lit, 99.5), 1e-6) * 0.8, size=tile), f"{name}: {environment}"))
+        tiles.append(label(tile8(exposed(one), size=tile), f"{name}: 1 light"))
+        tiles.append(label(tile8(exposed(lit), size=tile), f"{name}: {environment}"))
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     write_png(out_png, grid(tiles, columns=columns if columns % 2 == 0 else columns + 1))

@@ -1,9 +1,9 @@
 """Batched one-light-at-a-time (OLAT) rendering: the simulated light stage's photographs.
 
-For one camera, the primary rays are traced once; then, for batches of lights, one
-Dr.Jit wavefront evaluates every (surface sample × light) pair: the scene's own
-Mitsuba BSDF (``bsdf.eval``, which includes the cosine) times the light's irradiance,
-masked by a ray-traced shadow test. This is exactly what Mitsuba's ``direct``/``path``
+For one camera, the primary rays are traced once; then one Dr.Jit kernel loops over
+all lights for every surface sample: the scene's own Mitsuba BSDF (``bsdf.eval``,
+which includes the cosine) times the light's irradiance, masked by a ray-traced
+shadow test. This is exactly what Mitsuba's ``direct``/``path``
 integrators (max_depth = 2) compute for a directional emitter, without one
 ``mi.render`` call per light.
 
@@ -69,52 +69,54 @@ def primary_hits(scene, camera: Camera, spp: int = 4, seed: int = 0) -> PrimaryH
     return PrimaryHits(si_c, pixel, coverage, (h, w), spp)
 
 
-def _batch_radiance(scene, hits: PrimaryHits, dirs: np.ndarray) -> np.ndarray:
-    """(N*B, 3) radiance of every (sample, light) pair for unit-irradiance lights ``dirs`` (B, 3)."""
-    import drjit as dr
-
-    mi = ensure_variant()
-    n, b = len(hits), len(dirs)
-    lane = dr.arange(mi.UInt32, n * b)
-    s_i = lane // b
-    l_i = lane - s_i * b
-    si = dr.gather(mi.SurfaceInteraction3f, hits.si, s_i)
-    wi = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, dirs.T), l_i)
-    bsdf = si.bsdf()
-    value = bsdf.eval(mi.BSDFContext(), si, si.to_local(wi))
-    lit = ~scene.ray_test(si.spawn_ray(wi))
-    value = dr.select(lit, value, 0.0)
-    return from_jit(value)
-
-
 def render_olat(scene, camera: Camera, directions: np.ndarray, irradiance: np.ndarray | None = None,
-                spp: int = 4, seed: int = 0, max_lanes: int = 1 << 20, hits: PrimaryHits | None = None,
-                on_batch=None) -> np.ndarray:
+                spp: int = 4, seed: int = 0, hits: PrimaryHits | None = None, max_values: int = 1 << 28) -> np.ndarray:
     """OLAT images of ``scene`` seen by ``camera``: (L, H, W, 3) float32.
 
     ``directions`` (L, 3): world unit vectors towards the lights (directional lights).
     ``irradiance`` (L, 3) RGB irradiance per light (default 1: radiance per unit
-    irradiance). Lights are evaluated in batches of about ``max_lanes / N`` per Dr.Jit
-    wavefront. ``on_batch(n_done)`` is called after each batch (progress bars).
-    Background pixels are 0; partially covered pixels hold the coverage-weighted mean.
+    irradiance). One kernel per group of lights: a symbolic loop over the lights
+    evaluates the BSDF at every surface sample and traces a shadow ray only where the
+    BSDF is non-zero, adding each sample into its pixel (box filter). Background pixels
+    are 0; partially covered pixels hold the coverage-weighted mean.
     """
+    import drjit as dr
+
+    mi = ensure_variant()
     directions = np.asarray(directions, np.float64).reshape(-1, 3)
     n_lights = len(directions)
     irr = np.ones((n_lights, 3)) if irradiance is None else np.asarray(irradiance, np.float64).reshape(n_lights, 3)
     hits = primary_hits(scene, camera, spp, seed) if hits is None else hits
     h, w = hits.shape
-    out = np.zeros((n_lights, h * w, 3), np.float32)
-    if len(hits) == 0:
+    hw = h * w
+    out = np.zeros((n_lights, hw, 3), np.float32)
+    n = len(hits)
+    if n == 0 or n_lights == 0:
         return out.reshape(n_lights, h, w, 3)
-    batch = max(1, min(n_lights, max_lanes // max(len(hits), 1)))
-    for start in range(0, n_lights, batch):
-        dirs = directions[start:start + batch]
-        rad = _batch_radiance(scene, hits, dirs).reshape(len(hits), len(dirs), 3)
-        for k in range(len(dirs)):
+    si = hits.si
+    bsdf = si.bsdf()
+    ctx = mi.BSDFContext()
+    pix = to_jit(mi.UInt32, hits.pixel.astype(np.uint32))
+    group = max(1, min(n_lights, max_values // (hw * 3)))
+    for start in range(0, n_lights, group):
+        dirs = directions[start:start + group]
+        count = len(dirs)
+        acc = dr.zeros(mi.Float, count * hw * 3)
+        D = to_jit(mi.Vector3f, dirs.T)
+        n_count = dr.opaque(mi.UInt32, count)
+
+        def body(i):
+            wi = dr.gather(mi.Vector3f, D, i)
+            value = bsdf.eval(ctx, si, si.to_local(wi))
+            nonzero = (value.x > 0) | (value.y > 0) | (value.z > 0)
+            lit = nonzero & ~scene.ray_test(si.spawn_ray(wi), nonzero)
+            base = (i * hw + pix) * 3
             for c in range(3):
-                out[start + k, :, c] = np.bincount(hits.pixel, weights=rad[:, k, c], minlength=h * w)
-        if on_batch is not None:
-            on_batch(min(start + batch, n_lights))
+                dr.scatter_reduce(dr.ReduceOp.Add, acc, value[c], base + c, lit)
+            return (i + 1,)
+
+        dr.while_loop((dr.opaque(mi.UInt32, 0, n),), lambda i: i < n_count, body)
+        out[start:start + count] = np.asarray(acc).reshape(count, hw, 3)
     out /= hits.spp
     out *= irr[:, None, :].astype(np.float32)
     return out.reshape(n_lights, h, w, 3)
