@@ -59,24 +59,36 @@ def toy_problem(seed: int = 0):
                 regions=sub.regions, vertices=sub.neutral, pose=pose, out_of_set=out_of_set)
 
 
-def synthetic_problem(seed: int = 0):
-    """The synthetic subject (:mod:`mifacerf.synthetic`), when it exposes ``default_subject()``."""
-    from mifacerf import synthetic
+def synthetic_problem(seed: int = 0, n_sources: int = 60, texture_resolution: int = 256):
+    """The synthetic subject (:mod:`mifacerf.synthetic`): its ``n_sources`` captured-expression presets.
 
-    subject = synthetic.default_subject()
+    Template meshes (``pose(params).template_vertices``), triangles and regions come from the subject's
+    registration template.  Out-of-set targets: every control drawn uniformly in its range with
+    probability 0.3 (else at its default), head pose included.
+    """
+    from mifacerf.synthetic.subject import default_subject
+
+    subject = default_subject(texture_resolution)
     tpl = subject.template
-    src_params = np.asarray(subject.source_params)
-    S = np.stack([subject.pose(p).template_vertices for p in src_params])
-    rng = np.random.default_rng(seed + 9)
-    lo, hi = np.asarray(subject.param_lo), np.asarray(subject.param_hi)
-    out_of_set = lo + (hi - lo) * rng.random((60, lo.size)) * (rng.random((60, lo.size)) < 0.3)
+    presets = subject.presets(n_sources)
+    src_params = np.stack([e.params for e in presets])
+    neutral_index = next(i for i, e in enumerate(presets) if e.category == "neutral")
 
     def pose(P):
-        return np.stack([subject.pose(p).template_vertices for p in P])
+        return np.stack([subject.pose(p, textures=False).template_vertices for p in P])
 
-    return dict(name="synthetic subject", sources=S, params=src_params, neutral_index=int(subject.neutral_index),
-                triangles=tpl.triangles, regions=dict(tpl.regions), vertices=S[int(subject.neutral_index)],
-                pose=pose, out_of_set=out_of_set)
+    S = pose(src_params)
+    rng = np.random.default_rng(seed + 9)
+    lo = np.array([c.lo for c in subject.controls])
+    hi = np.array([c.hi for c in subject.controls])
+    dflt = np.array([c.default for c in subject.controls])
+    k = 60
+    draw = lo + (hi - lo) * rng.random((k, lo.size))
+    out_of_set = np.where(rng.random((k, lo.size)) < 0.3, draw, dflt)
+    return dict(name="synthetic subject", sources=S, params=src_params, neutral_index=neutral_index,
+                triangles=np.asarray(tpl.triangles), regions={k: np.asarray(v) for k, v in tpl.regions.items()},
+                vertices=S[neutral_index], pose=pose, out_of_set=out_of_set,
+                source_names=[e.name for e in presets])
 
 
 def run(problem: dict, residual_threshold=None, similarity_threshold=None, n_blends: int = 60,
@@ -153,6 +165,34 @@ def _pictures(problem, plain, culled, out_dir):
     plt.close(fig)
 
 
+def dims_picture(problem, thresholds, path):
+    """``m`` per template vertex for several residual thresholds (like the paper's Fig. 5b)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = problem["vertices"]
+    order = np.argsort(P[:, 2])
+    cmap = matplotlib.colors.ListedColormap(["#444444", "#3b7dd8", "#f2a33a", "#d6322f"])
+    fig, axes = plt.subplots(1, len(thresholds), figsize=(4.2 * len(thresholds) + 1, 5.2))
+    for ax, thr in zip(np.atleast_1d(axes), thresholds):
+        model = BlendModel.fit(problem["sources"], problem["neutral_index"], problem["triangles"],
+                               residual_threshold=thr)
+        vd = model.vertex_dims()
+        sc = ax.scatter(P[order, 0] * 100, P[order, 1] * 100, c=vd[order], cmap=cmap, vmin=-0.5, vmax=3.5, s=7)
+        h = np.bincount(model.dims, minlength=4)
+        ax.set_title(f"threshold {thr * 1e3:g} mm\nm=0..3: {h.tolist()}")
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (cm)")
+    np.atleast_1d(axes)[0].set_ylabel("y (cm)")
+    fig.colorbar(sc, ax=list(np.atleast_1d(axes)), ticks=[0, 1, 2, 3], fraction=0.025).set_label("m")
+    fig.suptitle(f"chosen dimensionality m per vertex ({problem['name']})", y=0.99)
+    fig.subplots_adjust(top=0.80, right=0.86)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _error_picture(problem, model, e_plain, e_cull, path):
     import matplotlib
 
@@ -185,11 +225,13 @@ def main(argv=None):
     if a.subject == "synthetic":
         try:
             problem = synthetic_problem()
-        except (ImportError, AttributeError) as exc:
+        except (ImportError, AttributeError, ModuleNotFoundError) as exc:
             raise SystemExit(f"the synthetic subject is not available ({exc}); use --subject toy") from exc
     else:
         problem = toy_problem()
     out = run(problem, a.residual_threshold, a.similarity_threshold, out_dir=a.out)
+    if a.out:
+        dims_picture(problem, (5e-5, 2e-4, 5e-4), os.path.join(a.out, "blending_dims_thresholds.png"))
     print(json.dumps(out, indent=1))
     if a.json:
         with open(a.json, "w", encoding="utf-8") as f:

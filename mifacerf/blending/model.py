@@ -41,12 +41,15 @@ from .local_space import LocalSpace, fit_local_space
 from .neighbourhoods import Neighbourhoods, neighbourhoods
 from .weights import GroupTables
 
-__all__ = ["BlendModel", "SparseWeights", "K_MAX", "DEFAULT_RESIDUAL_THRESHOLD", "DEFAULT_SIMILARITY_THRESHOLD"]
+__all__ = ["BlendModel", "SparseWeights", "K_MAX", "DEFAULT_RESIDUAL_THRESHOLD", "DEFAULT_SIMILARITY_THRESHOLD",
+           "DEFAULT_DUP_TOL"]
 
 #: slots per (frame, vertex) in SparseWeights
 K_MAX = 4
 #: default RMS PCA residual (metres) below which a dimension is dropped
 DEFAULT_RESIDUAL_THRESHOLD = 5e-5
+#: default RMS distance (metres) under which two sources count as duplicates at a vertex
+DEFAULT_DUP_TOL = 1e-6
 #: default RMS distance (metres) under which two expressions count as similar in a region
 DEFAULT_SIMILARITY_THRESHOLD = 5e-4
 FORMAT_VERSION = 1
@@ -161,7 +164,7 @@ class BlendModel:
     def fit(cls, sources, neutral_index: int, triangles, fiducial_mask=None, regions=None,
             residual_threshold: float = DEFAULT_RESIDUAL_THRESHOLD,
             similarity_threshold: float = DEFAULT_SIMILARITY_THRESHOLD, max_dim: int = 3,
-            rings: int = 2, dup_tol: float = DUP_TOL) -> "BlendModel":
+            rings: int = 2, dup_tol: float = DEFAULT_DUP_TOL) -> "BlendModel":
         """Fit the model.
 
         Parameters
@@ -185,7 +188,8 @@ class BlendModel:
         rings : int
             Neighbourhood radius in edges (paper: 2).
         dup_tol : float
-            Duplicate-merging distance in PCA-scale units (:mod:`~mifacerf.blending.delaunay`).
+            Sources whose projected local deformations differ by at most this RMS distance per
+            neighbourhood vertex (metres) are merged (:mod:`~mifacerf.blending.delaunay`, rule 1).
         """
         S = _as_meshes(sources, "sources")
         n, V = S.shape[:2]
@@ -234,7 +238,9 @@ class BlendModel:
             for i in range(rows.size):
                 a = allowed[c0 + i]
                 sp = fit_local_space(aligned[a, i], mask[i], residual_threshold, max_dim)
-                tri = triangulate(sp.coords, ids=a, preferred=neutral_index, dup_tol=dup_tol)
+                # metres RMS per neighbourhood vertex → PCA units (a floor catches exact duplicates)
+                tol = max(dup_tol * np.sqrt(mask[i].sum()) / sp.scale, DUP_TOL)
+                tri = triangulate(sp.coords, ids=a, preferred=neutral_index, dup_tol=tol)
                 if tri.m < sp.m:
                     sp = LocalSpace(mean=sp.mean, basis=sp.basis[: tri.m], scale=sp.scale,
                                     coords=sp.coords[:, : tri.m], residuals=sp.residuals, m=tri.m)
