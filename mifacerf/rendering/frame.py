@@ -11,9 +11,10 @@ integrator plugin both call :meth:`LitFrame.shade`.
 Shading a hit (triangle ``tri``, barycentrics ``b`` on the *target* mesh): for each
 chunk, ``p_s = Σ_k b_k V_s[tri_k]`` (the same surface point in the source
 geometry), projected into camera ``c`` with its lens distortion; the lit image is
-read there bilinearly (colour / coverage) if ``p_s`` is no further than
-``depth_tolerance`` behind the surface camera ``c`` saw (the smallest depth of the
-2x2 texels around it); the chunk's weight is ``a = Σ_k b_k a_{tri_k}``. Result:
+read there bilinearly (colour / coverage) from those of the 2x2 texels whose seen
+surface lies within ``depth_tolerance`` of ``p_s``'s distance (occlusion-aware
+filtering: a texel showing an occluder, or a surface behind a silhouette, is not
+used); the chunk's weight is ``a = Σ_k b_k a_{tri_k}``. Result:
 Σ a·colour / Σ a over the chunks that see the point; where none does, over the
 chunks regardless of the depth test (documented fall-back); where no chunk covers
 the point at all, ``covered`` is False.
@@ -156,26 +157,35 @@ class LitFrame:
             x0, y0 = Int32(x0f), Int32(y0f)
             wi, hi = Int32(wdt), Int32(hgt)
             use = active & (a > 0) & (pc[2] > 0)
+            # bilinear over the 2x2 texels, each tap used only if the surface camera c saw there lies
+            # at the point's distance (occlusion-aware filtering); the fall-back ignores depth
+            col_d = [Float(0), Float(0), Float(0)]
+            cov_d = Float(0)
             col = [Float(0), Float(0), Float(0)]
             cov = Float(0)
-            dmin = Float(dr.inf)
             for dy in (0, 1):
                 for dx in (0, 1):
                     xx, yy = x0 + dx, y0 + dy
                     inside = use & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
                     pix = ioff + UInt32(dr.select(inside, yy * wi + xx, 0))
                     wgt = dr.select(inside, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
+                    depth = dr.gather(Float, self.depths, pix, inside)
+                    wdep = dr.select(dr.abs(depth - dist) <= tol, wgt, 0.0)
+                    tap = [dr.gather(Float, self.images, pix * 4 + ch, inside) for ch in range(4)]
                     for ch in range(3):
-                        col[ch] += wgt * dr.gather(Float, self.images, pix * 4 + ch, inside)
-                    cov += wgt * dr.gather(Float, self.images, pix * 4 + 3, inside)
-                    dmin = dr.minimum(dmin, dr.select(inside, dr.gather(Float, self.depths, pix, inside), dr.inf))
+                        col[ch] += wgt * tap[ch]
+                        col_d[ch] += wdep * tap[ch]
+                    cov += wgt * tap[3]
+                    cov_d += wdep * tap[3]
             ok = use & (cov > 1e-3)
+            seen = use & (cov_d > 1e-3)
             inv_cov = dr.select(ok, dr.rcp(cov), 0.0)
-            seen = ok & (dist <= dmin + tol)
+            inv_cov_d = dr.select(seen, dr.rcp(cov_d), 0.0)
             wa = dr.select(ok, a, 0.0)
             ws = dr.select(seen, a, 0.0)
             return (i + 1,
-                    r + ws * col[0] * inv_cov, g + ws * col[1] * inv_cov, bl + ws * col[2] * inv_cov, wsum + ws,
+                    r + ws * col_d[0] * inv_cov_d, g + ws * col_d[1] * inv_cov_d, bl + ws * col_d[2] * inv_cov_d,
+                    wsum + ws,
                     r2 + wa * col[0] * inv_cov, g2 + wa * col[1] * inv_cov, b2 + wa * col[2] * inv_cov, wsum2 + wa)
 
         zeros = [dr.opaque(Float, 0, n) for _ in range(8)]

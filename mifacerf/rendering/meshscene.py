@@ -105,13 +105,20 @@ class MeshScene:
         o, d = camera.pixel_rays(uv)
         return self.trace(o, d), uv
 
-    def visible_from(self, points: np.ndarray, camera: Camera, tol: float = 1e-3) -> np.ndarray:
-        """(N,) visibility of surface points (N, 3) from a camera centre: in front, inside the image, unoccluded."""
+    def visible_from(self, points: np.ndarray, camera: Camera, tol: float = 0.003) -> np.ndarray:
+        """(N,) visibility of surface points (N, 3) from a camera: in front of it, inside its image, and
+        not hidden: the ray from the camera centre towards the point first meets the mesh no nearer
+        than ``tol`` metres before the point (a depth-map test, robust for points on silhouettes,
+        where a ray *from* the point grazes its own neighbouring triangles)."""
+        points = np.asarray(points, np.float64).reshape(-1, 3)
         uv, z = camera.project(points)
         inside = (z > 0) & np.all(np.isfinite(uv), axis=1)
         inside &= (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width - 0.5)
         inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height - 0.5)
         vis = np.zeros(len(points), bool)
         if inside.any():
-            vis[inside] = ~self.occluded(points[inside], camera.centre, eps=tol)
+            d = points[inside] - camera.centre
+            dist = np.linalg.norm(d, axis=1)
+            hits = self.trace(camera.centre, d / dist[:, None])
+            vis[inside] = ~hits.valid | (hits.t >= dist - tol)
         return vis
