@@ -198,3 +198,187 @@ class _ConsoleOperator:
 @click.group("calibrate", context_settings={"help_option_names": ["-h", "--help"]})
 def calibrate_group():
     """Geometric (Zhang) and radiometric (response, colour) calibration of the cameras (paper §2.1)."""
+
+
+def _rig_from_options(preset_name: str, resolution: int | None):
+    from mifacerf.rig import preset
+
+    try:
+        p = preset(preset_name)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--preset") from exc
+    rig = p.rig()
+    if resolution:
+        rig.cameras = [c.resized(resolution, resolution) for c in rig.cameras]
+    return rig
+
+
+@calibrate_group.command("render-boards")
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--preset", default="draft", show_default=True, help="Rig whose cameras are simulated.")
+@click.option("--resolution", type=int, help="Render the stills at this size instead of the preset's.")
+@click.option("--views", type=int, default=20, show_default=True, help="Board poses.")
+@click.option("--board", "board_spec", default="9x7:0.03:0.022", show_default=True,
+              help="SQUARESxSQUARES:square_m:marker_m (ChArUco, DICT_4X4_50).")
+@click.option("--spp", type=int, default=4, show_default=True, help="Samples per pixel.")
+@click.option("--tilt", type=float, default=55.0, show_default=True, help="Largest board tilt in degrees.")
+@click.option("--seed", type=int, default=0, show_default=True)
+def render_boards_cmd(out, preset, resolution, views, board_spec, spp, tilt, seed):
+    """Simulate calibration stills: a ChArUco board rendered by Mitsuba into the rig's cameras (truth.json holds
+    the intrinsics, distortion and poses used)."""
+    from mifacerf.capture.simulation.boards import write_board_dataset
+
+    rig = _rig_from_options(preset, resolution)
+    write_board_dataset(out, rig.cameras, _parse_board(board_spec), n_views=views, spp=spp, tilt_deg=tilt, seed=seed,
+                        progress=lambda c: _echo(f"rendered {c}"))
+    _echo(f"wrote {views} views x {len(rig.cameras)} cameras to {out}")
+
+
+def _parse_board(spec: str):
+    from mifacerf.capture.calibration.charuco import BoardSpec
+
+    try:
+        size, square, marker = spec.split(":")
+        nx, ny = (int(v) for v in size.lower().split("x"))
+        return BoardSpec(nx, ny, float(square), float(marker))
+    except ValueError as exc:
+        raise click.BadParameter(f"{spec!r}: expected e.g. 9x7:0.03:0.022 ({exc})", param_hint="--board") from exc
+
+
+@calibrate_group.command("geometry")
+@click.argument("boards", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Calibration JSON (default BOARDS/geometry.json).")
+@click.option("--model", type=click.Choice(["full", "radial", "k1", "none"]), default="full", show_default=True,
+              help="Distortion terms estimated (OpenCV k1,k2,p1,p2; k3 = 0).")
+@click.option("--principal-prior", type=float, default=0.01, show_default=True,
+              help="Hold principal points near the image centre: standard deviation as a fraction of the width "
+                   "(0: estimate freely; narrow zoom lenses need the prior).")
+@click.option("--no-world", is_flag=True, help="Use the first camera's frame, ignoring the world pose of the world view.")
+@click.option("--truth", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Ground truth (simulated boards' truth.json): report the errors.")
+@click.option("--apply", "apply_to", type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="Write the cameras into this capture folder's manifest (the old one is kept).")
+def geometry_cmd(boards, out, model, principal_prior, no_world, truth, apply_to):
+    """Zhang's calibration of every camera and their relative poses from ChArUco stills in BOARDS (paper §2.1)."""
+    import numpy as np
+
+    from mifacerf.camera import Camera
+    from mifacerf.capture.calibration.zhang2000 import (CalibrationError, calibrate_rig, detect_views, pose_errors,
+                                                        relative_pose_errors)
+    from mifacerf.capture.simulation.boards import read_board_dataset
+    from mifacerf.capture_folder import write_json_atomic
+
+    try:
+        board, images, desc = read_board_dataset(boards)
+    except (FileNotFoundError, KeyError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    sizes = {}
+    for cam, imgs in images.items():
+        shapes = {im.shape for im in imgs if im is not None}
+        if len(shapes) != 1:
+            raise click.ClickException(f"camera {cam}: {len(shapes)} different image sizes (or no image)")
+        h, w = shapes.pop()
+        sizes[cam] = (w, h)
+    det = detect_views(board, images)
+    for cam, d in det.items():
+        _echo(f"{cam}: board found in {len(d)}/{len(images[cam])} views")
+    world = desc.get("world_pose")
+    try:
+        cal = calibrate_rig(board, det, sizes, model=model,
+                            principal_prior_px=(principal_prior * max(max(s) for s in sizes.values()))
+                            if principal_prior > 0 else None,
+                            world_view=None if no_world or world is None else desc.get("world_view", 0),
+                            world_pose=None if no_world or world is None else
+                            (np.asarray(world["R"]), np.asarray(world["t"])))
+    except CalibrationError as exc:
+        raise click.ClickException(str(exc)) from exc
+    result = cal.to_dict()
+    if truth is not None:
+        t = json.loads(truth.read_text())
+        tcams = [Camera.from_dict(c) for c in t["cameras"]]
+        est = [cal.camera(c.name) for c in tcams]
+        result["errors"] = {"absolute": [{"camera": c.name, **pose_errors(e, c)} for e, c in zip(est, tcams)],
+                            "relative": relative_pose_errors(est, tcams)}
+    out = out or boards / "geometry.json"
+    write_json_atomic(out, result)
+    for c in cal.cameras:
+        line = f"{c.camera.name}: f={c.camera.K[0, 0]:.1f}px pp=({c.camera.K[0, 2]:.1f},{c.camera.K[1, 2]:.1f}) " \
+               f"rms={c.rms:.3f}px views={len(c.views)} outliers={c.outliers}"
+        if truth is not None:
+            e = next(x for x in result["errors"]["absolute"] if x["camera"] == c.camera.name)
+            line += f" | err f={100 * e['focal_rel']:.2f}% pp={e['principal_px']:.2f}px rot={e['rotation_deg']:.3f}deg " \
+                    f"centre={1000 * e['centre_m']:.1f}mm"
+        click.echo(line)
+    click.echo(f"rms reprojection error {cal.rms:.3f} px ({cal.world}); wrote {out}")
+    if apply_to is not None:
+        from mifacerf.capture.calibration.apply import apply_to_capture
+
+        backup = apply_to_capture(apply_to, geometry=result, source=str(out))
+        click.echo(f"applied to {apply_to}/manifest.json (previous kept as {backup.name})")
+
+
+@calibrate_group.command("render-charts")
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--preset", default="tiny", show_default=True)
+@click.option("--resolution", type=int, help="Image size instead of the preset's.")
+@click.option("--sensor", type=click.Choice(["realistic", "ideal"]), default="realistic", show_default=True)
+@click.option("--seed", type=int, default=0, show_default=True)
+def render_charts_cmd(out, preset, resolution, sensor, seed):
+    """Simulate chart captures: the grey chart under every light and at several exposures, and the
+    ColorChecker, recorded by each camera's sensor model (truth.json holds the true radiometry)."""
+    from mifacerf.capture.simulation.cameras import SensorModel
+    from mifacerf.capture.simulation.charts import write_chart_dataset
+
+    rig = _rig_from_options(preset, resolution)
+    sensors = {c.name: (SensorModel.realistic(seed=seed * 100 + i) if sensor == "realistic" else SensorModel())
+               for i, c in enumerate(rig.cameras)}
+    write_chart_dataset(out, rig, sensors, progress=lambda c: _echo(f"rendered {c}"))
+    _echo(f"wrote chart captures to {out}")
+
+
+@calibrate_group.command("response")
+@click.argument("charts", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Calibration JSON (default CHARTS/radiometry.json).")
+@click.option("--method", type=click.Choice(["grey_olat", "exposures"]), default="grey_olat", show_default=True,
+              help="Response from the grey chart under every light, or at several exposures.")
+@click.option("--truth", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Ground truth (simulated charts' truth.json): report the response-curve error.")
+@click.option("--apply", "apply_to", type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="Write the radiometry into this capture folder's manifest (the old one is kept).")
+def response_cmd(charts, out, method, truth, apply_to):
+    """Camera response curves, exposure and colour matrices from chart captures in CHARTS (paper §2.1)."""
+    import numpy as np
+
+    from mifacerf.capture.calibration.debevec1997 import curve_error
+    from mifacerf.capture.calibration.radiometric import RadiometryError, calibrate_radiometry, to_json
+    from mifacerf.capture_folder import Radiometry, write_json_atomic
+    from mifacerf.imageio import ImageFileError
+
+    try:
+        results = calibrate_radiometry(charts, method=method)
+    except (RadiometryError, ImageFileError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    data = to_json(results, str(charts), method)
+    if truth is not None:
+        t = json.loads(truth.read_text())["cameras"]
+        errs = {}
+        for c, r in results.items():
+            tr = Radiometry.from_dict(t[c])
+            true_inv = (lambda x, tr=tr: np.interp(x, tr.response["x"], tr.response["y"])) if tr.response else (lambda x: x)
+            errs[c] = curve_error(r.radiometry.response, true_inv)
+        data["errors"] = errs
+    out = out or charts / "radiometry.json"
+    write_json_atomic(out, data)
+    for c, r in results.items():
+        rep = r.report()
+        line = f"{c}: exposure={r.radiometry.exposure:.3f} ΔE2000 mean={rep['delta_e2000_mean']:.2f} " \
+               f"max={rep['delta_e2000_max']:.2f}"
+        if truth is not None:
+            line += f" | response error rms={100 * data['errors'][c]['rms']:.2f}% max={100 * data['errors'][c]['max']:.2f}%"
+        click.echo(line)
+    click.echo(f"wrote {out}")
+    if apply_to is not None:
+        from mifacerf.capture.calibration.apply import apply_to_capture
+
+        backup = apply_to_capture(apply_to, radiometry=data, source=str(out))
+        click.echo(f"applied to {apply_to}/manifest.json (previous kept as {backup.name})")
