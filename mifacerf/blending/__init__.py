@@ -19,7 +19,7 @@ MIS), :mod:`.reference` (per-vertex NumPy/SciPy), :mod:`.model` (``BlendModel``)
 :mod:`.toy` (analytic test meshes), :mod:`.benchmark`, :mod:`.measure`.
 Documentation: ``docs/blending.md``.
 """
-from .culling import REGION_NAMES, load_regions, save_regions
+from .culling import REGION_NAMES, load_regions, save_regions, synthetic_regions
 from .deformation import align_neighbourhoods, local_rotations, region_deformations
 from .horn1987 import horn
 from .model import BlendModel, SparseWeights
@@ -37,4 +37,5 @@ __all__ = [
     "REGION_NAMES",
     "load_regions",
     "save_regions",
+    "synthetic_regions",
 ]

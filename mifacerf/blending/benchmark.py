@@ -56,7 +56,8 @@ def make_problem(n_vertices=300, n_sources=60, n_frames=10000, seed=0):
     return sub, S, X
 
 
-def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, seed=0, quiet=False):
+def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, seed=0, quiet=False,
+        threads=None, repeats=3):
     from ._blas import single_threaded_blas
     from .model import BlendModel
     from .reference import vertex_coords, vertex_weights
@@ -74,10 +75,15 @@ def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, s
         f"m histogram {dims.tolist()}; simplices per vertex mean {nsimp.mean():.0f} max {nsimp.max()}")
 
     B = backend()
+    import drjit as dr
+
+    if threads:
+        dr.set_thread_count(int(threads))
     out = dict(vertices=V, sources=n_sources, frames=n_frames, fit_s=t_fit, dims=dims.tolist(),
                ghost_simplices=int(sum(t.ghost.sum() for t in model.triangulations)),
                simplices_mean=float(nsimp.mean()), simplices_max=int(nsimp.max()),
-               variant=None, cpu_count=os.cpu_count(), machine=platform.processor() or platform.machine())
+               variant=None, cpu_count=os.cpu_count(), drjit_threads=dr.thread_count(),
+               machine=platform.processor() or platform.machine(), load_before=os.getloadavg()[0])
     from mifacerf.variant import ensure_variant
 
     out["variant"] = ensure_variant().variant()
@@ -88,12 +94,13 @@ def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, s
         model.fiducial_weights(X[:64], precision=precision)
         t_small = time.perf_counter() - t0
         times = []
-        for _ in range(2):
+        for _ in range(repeats):
             t0 = time.perf_counter()
             res[precision] = model.fiducial_weights(X, precision=precision)
             times.append(time.perf_counter() - t0)
         out[f"drjit_{precision}_s"] = min(times)
-        say(f"Dr.Jit {precision}: {min(times):.3f} s (best of 2; a 64-frame call takes {t_small * 1e3:.0f} ms)")
+        say(f"Dr.Jit {precision} ({dr.thread_count()} threads): {min(times):.3f} s (best of {repeats}; "
+            f"a 64-frame call takes {t_small * 1e3:.0f} ms)")
 
     # reference, per vertex; timed in its two halves.  Single-threaded BLAS: its LAPACK calls are tiny
     # (4x4 eigh, scipy's per-simplex transforms) and a threaded OpenBLAS only slows them down.
@@ -131,6 +138,8 @@ def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, s
             outside.append(np.mean(tri.qhull.find_simplex(coords[f][:2000]) < 0))
     out["outside_fraction"] = float(np.mean(outside)) if outside else 0.0
     say(f"fraction of (frame, vertex) targets outside the sources' hull: {out['outside_fraction']:.2f}")
+    out["load_after"] = os.getloadavg()[0]
+    say(f"load average before / after: {out['load_before']:.1f} / {out['load_after']:.1f} on {os.cpu_count()} cores")
     return out
 
 
@@ -139,9 +148,10 @@ def main(argv=None):
     ap.add_argument("--vertices", type=int, default=300)
     ap.add_argument("--sources", type=int, default=60)
     ap.add_argument("--frames", type=int, default=10000)
+    ap.add_argument("--threads", type=int, help="Dr.Jit worker threads (default: all cores)")
     ap.add_argument("--json", help="also write the numbers to this file")
     a = ap.parse_args(argv)
-    out = run(a.vertices, a.sources, a.frames)
+    out = run(a.vertices, a.sources, a.frames, threads=a.threads)
     if a.json:
         with open(a.json, "w", encoding="utf-8") as f:
             json.dump(out, f, indent=1)

@@ -29,7 +29,9 @@ Conventions (documented choices beyond the paper):
   (all sources).
 
 Region files for real templates are JSON: ``{"regions": {"forehead": [vertex ids...], ...}}``
-(:func:`load_regions`, :func:`save_regions`).
+(:func:`load_regions`, :func:`save_regions`); a registration template file (``mifacerf.template/1``,
+which has the same ``regions`` member) loads directly.  The synthetic subject's template supplies the
+defaults (:func:`synthetic_regions`).
 """
 from __future__ import annotations
 
@@ -51,11 +53,13 @@ __all__ = [
     "allowed_sources",
     "load_regions",
     "save_regions",
+    "synthetic_regions",
     "check_regions",
 ]
 
-#: the paper's regions (§5.1)
-REGION_NAMES = ("forehead", "mouth", "neck", "throat", "chin", "left_cheek", "right_cheek", "left_eye", "right_eye")
+#: the paper's regions (§5.1), named as in the registration template (``mifacerf.template/1``), whose
+#: synthetic subject adds a tenth, ``nose``
+REGION_NAMES = ("forehead", "mouth", "neck", "throat", "chin", "cheek_left", "cheek_right", "eye_left", "eye_right")
 
 
 def similarity_graph(D, threshold: float) -> np.ndarray:
@@ -183,6 +187,13 @@ def load_regions(path) -> dict:
     if not isinstance(data, dict) or not isinstance(data.get("regions"), dict):
         raise ValueError(f"{path}: expected a JSON object with a 'regions' object")
     return {str(k): np.asarray(v, dtype=np.int64) for k, v in data["regions"].items()}
+
+
+def synthetic_regions() -> dict:
+    """The synthetic subject's template regions ``{name: vertex ids}`` (builds the subject: slow once)."""
+    from mifacerf.synthetic.subject import default_subject
+
+    return {str(k): np.asarray(v, dtype=np.int64) for k, v in default_subject().template.regions.items()}
 
 
 def save_regions(path, regions) -> None:

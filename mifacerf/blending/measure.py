@@ -140,7 +140,6 @@ def _pictures(problem, plain, culled, out_dir):
 
     os.makedirs(out_dir, exist_ok=True)
     P = problem["vertices"]
-    front = P[:, 2] > np.percentile(P[:, 2], 0) - 1   # all
     fig, axes = plt.subplots(1, 2, figsize=(11, 5), gridspec_kw={"width_ratios": [1.2, 1]})
     vd = plain.vertex_dims()
     cmap = matplotlib.colors.ListedColormap(["#444444", "#3b7dd8", "#f2a33a", "#d6322f"])
@@ -159,7 +158,6 @@ def _pictures(problem, plain, culled, out_dir):
     axes[1].text(plain.n_sources, len(names) - 0.5, f" all {plain.n_sources}", va="center")
     axes[1].set_xlabel("source expressions kept")
     axes[1].set_title("coherent culling (§5.1): kept per region")
-    del front
     fig.tight_layout()
     fig.savefig(os.path.join(out_dir, "blending_dims_culling.png"), dpi=110)
     plt.close(fig)

@@ -66,8 +66,8 @@ def toy_subject(nx: int = 12, ny: int = 10, n_shapes: int = 6, seed: int = 0, am
     x, y = V[:, 0], V[:, 1]
     regions = {
         "forehead": np.nonzero(y > 0.03)[0],
-        "left_cheek": np.nonzero((x > 0) & (y <= 0.035) & (y > -0.03))[0],
-        "right_cheek": np.nonzero((x <= 0) & (y <= 0.035) & (y > -0.03))[0],
+        "cheek_left": np.nonzero((x > 0) & (y <= 0.035) & (y > -0.03))[0],
+        "cheek_right": np.nonzero((x <= 0) & (y <= 0.035) & (y > -0.03))[0],
         "mouth": np.nonzero(y <= -0.025)[0],
     }
     return ToySubject(neutral=V, triangles=F, shapes=np.array(shapes), regions=regions)

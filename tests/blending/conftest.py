@@ -1,5 +1,4 @@
 """Shared fixtures of the blending tests: small toy subjects and fitted models (module-scoped)."""
-import numpy as np
 import pytest
 
 from mifacerf.blending import BlendModel

@@ -1,5 +1,4 @@
 """Coherent expression culling (paper §5.1): similarity graph, minimum-degree greedy MIS, regions."""
-import itertools
 import json
 
 import numpy as np
@@ -122,6 +121,9 @@ def test_region_file_roundtrip(tmp_path):
     assert data == {"regions": {"forehead": [3, 1, 2], "mouth": [7]}}
     back = load_regions(p)
     assert back.keys() == regions.keys() and all(np.array_equal(back[k], regions[k]) for k in regions)
+    # a registration template file (mifacerf.template/1) has the same "regions" member
+    p.write_text(json.dumps({"schema": "mifacerf.template/1", "vertices": [], "regions": {"chin": [4, 5]}}))
+    assert load_regions(p)["chin"].tolist() == [4, 5]
     p.write_text('{"nope": 1}')
     with pytest.raises(ValueError):
         load_regions(p)

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
-from scipy.spatial import ConvexHull, Delaunay
+from scipy.spatial import Delaunay
 
 from mifacerf.blending import delaunay as D
-from mifacerf.blending.delaunay import nearest_on_hull, triangulate, weights_numpy
+from mifacerf.blending.delaunay import triangulate, weights_numpy
 
 SET = settings(max_examples=40, deadline=None)
 
