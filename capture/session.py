@@ -170,6 +170,7 @@ class SessionReport:
     expressions_complete: int = 0
     takes: int = 0
     takes_rejected: int = 0
+    takes_blurred: int = 0
     runs: int = 0
     refire_runs: int = 0
     frames_written: int = 0
@@ -182,7 +183,6 @@ class SessionReport:
     resumes: int = 0
     interruptions: int = 0
     images: int = 0
-    images_verified: int = 0
     link: dict = field(default_factory=dict)
     complete: bool = False
 
@@ -203,6 +203,7 @@ def summarize(records: list[dict]) -> SessionReport:
             rep.takes += 1
         elif ev == "take_end" and r["status"] == "rejected":
             rep.takes_rejected += 1
+            rep.takes_blurred += int("blurred" in r.get("reason", "") or "motion" in r.get("reason", ""))
         elif ev == "run":
             rep.runs += 1
             rep.refire_runs += int(r.get("run", 1) > 1)
@@ -707,6 +708,12 @@ class CaptureSession:
             checksums[dst_rel] = sha
         for d in dirs:
             fsync_dir(d)
+        for d in sorted({d for d in dirs if "takes" in d.parts}, key=lambda p: -len(p.parts)):
+            for p in (d, d.parent):  # the emptied take folders (never a file)
+                try:
+                    p.rmdir()
+                except OSError:
+                    pass
         if len(checksums) != len(self.lights) * len(self.rig.cameras):
             raise SessionError(f"expression {e!r}: the accepted take has {len(checksums)} images, expected "
                                f"{len(self.lights) * len(self.rig.cameras)}")

@@ -116,12 +116,13 @@ def open_port(port, *, baudrate: int = 115200, timeout: float = 0.05):
 class StrobeController:
     """Talks to the strobe controller on ``port`` (a port object or a pyserial URL).
 
-    ``timeout``: seconds to wait for each reply; ``retries``: re-sends after a timeout.
+    ``timeout``: seconds to wait for each reply; ``retries``: re-sends after a timeout;
+    ``rotate_s``: extra time a ROTATE may take (the arm moves before it answers).
     ``record``: optional callable ``(direction, frame)`` for logging every frame.
     """
 
     def __init__(self, port, *, timeout: float = 0.5, retries: int = 4, baudrate: int = 115200,
-                 record: Callable[[str, P.Frame], None] | None = None):
+                 rotate_s: float = 2.0, record: Callable[[str, P.Frame], None] | None = None):
         self._owns_port = isinstance(port, (str, bytes))
         self.port = open_port(port, baudrate=baudrate)
         try:
@@ -130,6 +131,7 @@ class StrobeController:
             pass
         self.timeout = float(timeout)
         self.retries = int(retries)
+        self.rotate_s = float(rotate_s)
         self.record = record
         self.stats = LinkStats()
         self._decoder = P.FrameDecoder()
@@ -169,7 +171,7 @@ class StrobeController:
             try:
                 n = max(1, getattr(self.port, "in_waiting", 0) or 0)
                 data = self.port.read(n)
-            except Exception as exc:  # noqa: BLE001 - pyserial raises SerialException/OSError
+            except OSError as exc:  # pyserial's SerialException is an OSError
                 raise ControllerError(f"reading from the strobe controller failed: {exc}") from exc
             frames = []
             if data:
@@ -208,7 +210,7 @@ class StrobeController:
             self.port.write(frame)
             if hasattr(self.port, "flush"):
                 self.port.flush()
-        except Exception as exc:  # noqa: BLE001
+        except OSError as exc:  # pyserial's SerialException is an OSError
             raise ControllerError(f"writing to the strobe controller failed: {exc}") from exc
 
     def transact(self, command: P.Msg, payload: bytes = b"", *, timeout: float | None = None) -> bytes:
@@ -217,6 +219,7 @@ class StrobeController:
         Retries on timeout with the same sequence number; raises :class:`CommandRefused`
         on NAK, :class:`ControllerTimeout` when every try went unanswered.
         """
+        cname = P.name_of(command)
         seq = self._next_seq()
         raw = P.encode_frame(seq, command, payload)
         wait = self.timeout if timeout is None else timeout
@@ -224,7 +227,7 @@ class StrobeController:
         for attempt in range(self.retries + 1):
             if attempt:
                 self.stats.retries += 1
-                log.info("no reply to %s #%d, re-sending (try %d)", command.name, seq, attempt + 1)
+                log.info("no reply to %s #%d, re-sending (try %d)", cname, seq, attempt + 1)
             if self.record:
                 self.record("tx", P.Frame(seq, command, payload))
             self._send(raw)
@@ -243,16 +246,19 @@ class StrobeController:
                     if not f.payload or f.payload[0] != command:
                         raise ControllerProtocolError(
                             f"reply #{seq} acknowledges command {f.payload[:1].hex() or 'nothing'}, "
-                            f"not {command.name}")
+                            f"not {cname}")
                     if f.type == P.Msg.NAK:
                         self._check_reset()  # a refusal by a device that just rebooted is a reset
                         _, reason, text = P.unpack_nak(f.payload)
-                        raise CommandRefused(command.name, reason, text)
+                        if reason in (P.Reason.NO_SEQUENCE, P.Reason.NOT_CONTIGUOUS) and self.boot_id is not None \
+                                and command != P.Msg.STATUS:
+                            self.status()  # the sequence vanished: did the device reset? (raises DeviceReset)
+                        raise CommandRefused(cname, reason, text)
                     return f.payload[1:]
             self.stats.timeouts += 1
         raise ControllerTimeout(
             f"no valid reply from the strobe controller on {getattr(self.port, 'port', self.port)!r} to "
-            f"{command.name} after {self.retries + 1} tries of {wait:.2f} s: the device stopped answering "
+            f"{cname} after {self.retries + 1} tries of {wait:.2f} s: the device stopped answering "
             "or the line is dead (check power and cable)")
 
     # ----------------------------------------------------------- commands
@@ -281,7 +287,7 @@ class StrobeController:
         return st
 
     def rotate(self, arm_position: int) -> int:
-        pos = _u16(self.transact(P.Msg.ROTATE, struct.pack("<H", arm_position), timeout=self.timeout + 2.0),
+        pos = _u16(self.transact(P.Msg.ROTATE, struct.pack("<H", arm_position), timeout=self.timeout + self.rotate_s),
                    "ROTATE")
         self._check_reset()
         return pos

@@ -377,9 +377,9 @@ def describe(frame: Frame) -> str:
         if m is Msg.NAK:
             cmd, reason, text = unpack_nak(frame.payload)
             r = reason.name if isinstance(reason, Reason) else reason
-            return f"#{frame.seq} NAK {_name(cmd)} {r}: {text}"
+            return f"#{frame.seq} NAK {name_of(cmd)} {r}: {text}"
         if m is Msg.ACK and frame.payload:
-            return f"#{frame.seq} ACK {_name(frame.payload[0])} {frame.payload[1:].hex()}"
+            return f"#{frame.seq} ACK {name_of(frame.payload[0])} {frame.payload[1:].hex()}"
         if m is Msg.EVENT:
             return f"#{frame.seq} EVENT {Event.unpack(frame.payload)}"
         if m is Msg.DONE:
@@ -389,7 +389,7 @@ def describe(frame: Frame) -> str:
     return f"#{frame.seq} {name} {frame.payload.hex()}"
 
 
-def _name(t: int) -> str:
+def name_of(t: int) -> str:
     try:
         return Msg(t).name
     except ValueError:

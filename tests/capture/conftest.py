@@ -1,0 +1,18 @@
+"""Fixtures for the capture tests (helpers in capture_helpers.py)."""
+import pytest
+
+from capture_helpers import new_session, tiny_rig
+
+
+@pytest.fixture
+def rig():
+    return tiny_rig()
+
+
+@pytest.fixture
+def session_factory(tmp_path, rig):
+    def make(n_expressions=2, root=None, **config):
+        return new_session(root or tmp_path / "cap", rig, n_expressions, **config)
+    return make
+
+
