@@ -103,12 +103,29 @@ class FaceModel:
             geometry += wt * m.vertices[s]
         return geometry, W
 
+    def parts(self, expression=None, mesh=None) -> dict:
+        """Eye and teeth transforms {part: 4x4 rest→world} of a blend of captured expressions or of a mesh."""
+        from .parts import target_parts_from_mesh, target_parts_from_weights
+
+        if not self.model.references:
+            return {}
+        if mesh is not None:
+            return target_parts_from_mesh(self.model, np.asarray(mesh, np.float64))
+        return target_parts_from_weights(self.model, parse_weights(expression, self.model.expressions))
+
     def render(self, expression=None, *, mesh=None, camera=None, env="sky", spp: int = 4, size: int | None = None,
-               stats: RenderStats | None = None, seed: int = 0) -> np.ndarray:
-        """(H, W, 4) float32 RGBA, linear sRGB, premultiplied by coverage."""
+               stats: RenderStats | None = None, seed: int = 0, parts: dict | None = None,
+               eyes_teeth: bool = True) -> np.ndarray:
+        """(H, W, 4) float32 RGBA, linear sRGB, premultiplied by coverage.
+
+        ``parts`` overrides the eye/teeth transforms (e.g. from tracking); ``eyes_teeth=False``
+        renders the skin only.
+        """
         target, W = self.target(expression, mesh)
+        if eyes_teeth and parts is None:
+            parts = self.parts(expression, mesh)
         return self.renderer.render(target, W, self.camera(camera, size), self.environment(env), spp=spp,
-                                    seed=seed, stats=stats)
+                                    seed=seed, stats=stats, parts=parts if eyes_teeth else None)
 
 
 def load_model(path, cache_bytes: int = 4 << 30) -> FaceModel:

@@ -16,6 +16,7 @@ import numpy as np
 from ..capture_folder import Capture
 from ..registered import Registration
 from .meshscene import MeshScene
+from .parts import build_part_fields, choose_references
 from .model import ModelWriter
 
 
@@ -32,15 +33,6 @@ def template_arrays(template: dict) -> dict:
     fiducial = np.array([k == "dot" for k in kinds]) if kinds is not None else np.ones(n, bool)
     regions = {k: np.asarray(v, np.int64) for k, v in (template.get("regions") or {}).items()}
     return {"triangles": tri, "fiducial": fiducial, "regions": regions, "n_vertices": n}
-
-
-def pick_reference(names: list[str], categories: dict, wanted: tuple[str, ...], fallback: str) -> str:
-    """The first expression whose name contains one of ``wanted`` (eye/teeth reference), else ``fallback``."""
-    for w in wanted:
-        for n in names:
-            if w in n:
-                return n
-    return fallback
 
 
 def build_model(capture: str | Path, out: str | Path, registration: str | Path | None = None,
@@ -87,10 +79,9 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
     sources = np.stack([geometry[n].vertices for n in names])
     blend = BlendModel.fit(sources, names.index(neutral), t["triangles"], fiducial_mask=t["fiducial"],
                            regions=t["regions"] if (culling and t["regions"]) else None)
-    cats = {n: cap.expressions[cap.expression_index(n)].category for n in names}
-    writer.extra["references"] = {
-        "eyes": pick_reference(names, cats, ("eyes_wide", "wide"), neutral),
-        "teeth": pick_reference(names, cats, ("teeth_bared", "teeth"), neutral),
-    }
+    references = choose_references(reg, names, reg.template, t["triangles"], cams)
+    writer.extra["references"] = references
+    writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, references,
+                                              cap.rig.lights.directions)
     writer.extra["source"] = {"capture": str(Path(capture).resolve()), "registration": str(reg.root.resolve())}
     return writer.finish(blend)

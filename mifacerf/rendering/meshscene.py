@@ -60,8 +60,18 @@ class MeshScene:
         else:
             self._params["vertex_positions"] = flat
 
-    def trace(self, origins: np.ndarray, directions: np.ndarray) -> Hits:
-        """Closest hits of rays (origins (N, 3) or (3,), unit directions (N, 3)), world frame."""
+    def face_normals(self) -> np.ndarray:
+        """(F, 3) unit normals of the triangles (right-hand rule on ``faces`` order)."""
+        v = self.vertices[self.faces]
+        n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+    def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False) -> Hits:
+        """Closest hits of rays (origins (N, 3) or (3,), unit directions (N, 3)), world frame.
+
+        ``cull_back``: a closest hit on a back-facing triangle (seen from behind, e.g. the inside of
+        the template through the eye or mouth opening) counts as no hit.
+        """
         mi = self._mi
         d = np.asarray(directions, np.float32).reshape(-1, 3)
         o = np.broadcast_to(np.asarray(origins, np.float32), d.shape)
@@ -74,6 +84,11 @@ class MeshScene:
         bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
         bary[~valid] = 0.0
         t = np.where(valid, np.asarray(pi.t), np.inf)
+        if cull_back and valid.any():
+            back = np.zeros_like(valid)
+            back[valid] = np.einsum("nd,nd->n", self.face_normals()[tri[valid]], d[valid]) > 0
+            valid &= ~back
+            tri[back], bary[back], t[back] = -1, 0.0, np.inf
         return Hits(valid, tri, bary, t)
 
     def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:
@@ -92,10 +107,12 @@ class MeshScene:
         ray.maxt = to_jit(mi.Float, np.maximum(dist - 2 * eps, 0))
         return np.asarray(self.scene.ray_test(ray)).astype(bool)
 
-    def render_hits(self, camera: Camera, spp: int = 1, seed: int = 0) -> tuple[Hits, np.ndarray]:
+    def render_hits(self, camera: Camera, spp: int = 1, seed: int = 0,
+                    cull_back: bool = True) -> tuple[Hits, np.ndarray]:
         """Hits of a camera's pixel samples: (hits of H*W*spp samples, sample pixel positions (N, 2)).
 
-        ``spp = 1`` traces exactly through pixel centres; more samples are stratified.
+        ``spp = 1`` traces exactly through pixel centres; more samples are stratified. Back-facing
+        hits (the template's inside, seen through its openings) are culled by default.
         """
         if spp == 1:
             jj, ii = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
@@ -103,7 +120,7 @@ class MeshScene:
         else:
             uv = stratified_pixel_samples(camera.width, camera.height, spp, seed)
         o, d = camera.pixel_rays(uv)
-        return self.trace(o, d), uv
+        return self.trace(o, d, cull_back), uv
 
     def visible_from(self, points: np.ndarray, camera: Camera, tol: float = 0.003) -> np.ndarray:
         """(N,) visibility of surface points (N, 3) from a camera: in front of it, inside its image, and

@@ -74,6 +74,12 @@ class Field:
         return int(self.rf.size * self.rf.itemsize)
 
 
+def _nbytes(entry) -> int:
+    if isinstance(entry, Field):
+        return entry.nbytes
+    return int(sum(np.asarray(v).nbytes for v in entry.values() if hasattr(v, "nbytes")))
+
+
 class Model:
     """A model folder opened for rendering. Fields load lazily (an LRU of ``cache_bytes``)."""
 
@@ -166,10 +172,10 @@ class Model:
             raise ModelError(f"{rpath}: shape {rf.shape}, expected ({len(f.pixels)}, {self.n_lights}, 3)")
         self.loaded_fields.append((e, cam.name))
         self._fields[key] = f
-        total = sum(x.nbytes if isinstance(x, Field) else x["coeff"].nbytes for x in self._fields.values())
+        total = sum(_nbytes(x) for x in self._fields.values())
         while total > self.cache_bytes and len(self._fields) > 1:
             _, old = self._fields.popitem(last=False)
-            total -= old.nbytes if isinstance(old, Field) else old["coeff"].nbytes
+            total -= _nbytes(old)
         return f
 
     def compressed_field(self, s: int, c: int, rank: int) -> dict:
@@ -188,6 +194,30 @@ class Model:
         self.loaded_fields.append((self.expressions[s], self.cameras[c].name))
         self._fields[key] = comp
         return comp
+
+    def part_field(self, reference: str, c: int) -> dict | None:
+        """Eye/teeth texels of a reference expression in camera ``c``: {pixels (N, 2), part (N,) index into
+        :data:`.parts.PARTS`, depth (N,), rf (N, L, 3) float16}, or None if the model has none."""
+        key = ("parts", reference, c)
+        if key in self._fields:
+            return self._fields[key]
+        base = self.root / "fields" / reference / self.cameras[c].name
+        tpath, rpath = base.with_suffix(".parts.npz"), base.with_suffix(".parts.rf.npy")
+        if not tpath.exists():
+            return None
+        if not rpath.exists():
+            raise ModelError(f"{rpath}: missing (its texel map {tpath.name} exists)")
+        z = np.load(tpath)
+        out = {"pixels": z["pixels"].astype(np.int64), "part": z["part"].astype(np.int64), "depth": z["depth"],
+               "rf": np.load(rpath, mmap_mode="r")}
+        self.loaded_fields.append((reference, self.cameras[c].name + ":parts"))
+        self._fields[key] = out
+        return out
+
+    @property
+    def references(self) -> dict:
+        """{"eyes": expression, "teeth": expression}: the parts' reference expressions."""
+        return dict(self.meta.get("references", {}))
 
     @property
     def blend(self):

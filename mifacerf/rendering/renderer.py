@@ -31,6 +31,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
 from .meshscene import MeshScene
+from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms
 from .compression import lit_texels_pca
 from .relight import lit_texels, to_device_f16
 
@@ -64,7 +65,10 @@ class Renderer:
         self.depth_tolerance = depth_tolerance
         self.method = method
         self.rank = rank
-        self._scene = MeshScene(model.vertices[model.expression_index(model.neutral)], model.triangles)
+        neutral = model.vertices[model.expression_index(model.neutral)]
+        self._scene = MeshScene(neutral, model.triangles)
+        meshes = part_meshes(model.template) if model.references else {}
+        self._combined = CombinedScene(neutral, model.triangles, meshes) if meshes else None
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self._device: dict[tuple[int, int], object] = {}
 
@@ -137,11 +141,69 @@ class Renderer:
         sources = {s: model.vertices[s] for s in plan.sources}
         return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance)
 
+    # ------------------------------------------------------------ eyes, teeth
+    def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats) -> PartFrame:
+        """The eyes' and teeth's shading state for target part transforms ``parts`` {part: 4x4 rest→world}."""
+        model = self.model
+        refs = model.references
+        info = {}
+        look = -camera.forward
+        sampler = self._view_sampler()
+        for p, T_t in parts.items():
+            ref = refs.get("eyes" if p.startswith("eye") else "teeth")
+            if ref is None:
+                continue
+            s = model.expression_index(ref)
+            T_ref = part_transforms(model.template, model.eye_centres[s], model.teeth[s], model.head_pose[s]).get(p)
+            if T_ref is None:
+                continue
+            R_delta = T_ref[:3, :3] @ T_t[:3, :3].T  # target pose → reference pose
+            idx, w = sampler.weights((R_delta @ look)[None])
+            views = []
+            for c, wc in zip(idx[0], w[0]):
+                pf = model.part_field(ref, int(c)) if wc > 0 else None
+                if pf is None:
+                    continue
+                sel = np.flatnonzero(pf["part"] == PARTS.index(p))
+                if not len(sel):
+                    continue
+                cam = model.cameras[int(c)]
+                index = np.full((cam.height, cam.width), -1, np.int64)
+                depth = np.full((cam.height, cam.width), np.inf, np.float32)
+                px = pf["pixels"][sel]
+                index[px[:, 0], px[:, 1]] = np.arange(len(sel))
+                depth[px[:, 0], px[:, 1]] = pf["depth"][sel]
+                views.append((int(c), float(wc), {"index": index, "depth": depth, "rf": np.asarray(pf["rf"][sel])}))
+                if (ref, cam.name + ":parts") not in stats.fields_loaded:
+                    stats.fields_loaded.append((ref, cam.name + ":parts"))
+            if views:
+                info[p] = {"reference": T_ref, "lighting": basis.rotated(R_delta[None])[0],
+                           "light_dirs": model.light_directions @ R_delta, "views": views}
+
+        def env_lookup(d):
+            from ..variant import ensure_variant as _ev
+
+            return _ev().Color3f(*basis._lookup(d))
+
+        return PartFrame(model.cameras, model.n_lights, info, env_lookup)
+
+    def _view_sampler(self):
+        if not hasattr(self, "_views"):
+            from .views import ViewSampler
+
+            self._views = ViewSampler.from_cameras(self.model.cameras)
+        return self._views
+
     # ----------------------------------------------------------------- render
     def render(self, target: np.ndarray, expression_weights: np.ndarray, camera: Camera, env: Environment,
                spp: int = 4, seed: int = 0, frame: int = 0, plan: FramePlan | None = None,
-               stats: RenderStats | None = None) -> np.ndarray:
-        """Render (H, W, 4) RGBA of the target (T, 3) with (T, S) expression weights under ``env``."""
+               stats: RenderStats | None = None, parts: dict | None = None) -> np.ndarray:
+        """Render (H, W, 4) RGBA of the target (T, 3) with (T, S) expression weights under ``env``.
+
+        ``parts``: the target's eye and teeth transforms {part: 4x4 rest→world}
+        (:func:`.parts.target_parts_from_weights` / :func:`.parts.target_parts_from_mesh`); None
+        renders the skin only.
+        """
         mi = ensure_variant()
         model = self.model
         stats = stats if stats is not None else RenderStats()
@@ -152,19 +214,62 @@ class Renderer:
         lit = self.light_frame(plan, env, stats)
 
         t0 = time.perf_counter()
-        self._scene.set_vertices(plan.target)
-        hits, _ = self._scene.render_hits(camera, spp, seed)
+        use_parts = bool(parts) and self._combined is not None
+        if use_parts:
+            self._combined.set_pose(plan.target, parts)
+            scene = self._combined.scene
+        else:
+            self._scene.set_vertices(plan.target)
+            scene = self._scene
+        hits, uv = scene.render_hits(camera, spp, seed)
         idx = np.flatnonzero(hits.valid)
+        n_skin_tri = len(model.triangles)
+        on_skin = hits.tri[idx] < n_skin_tri
         stats.add_time("trace", time.perf_counter() - t0)
 
         t0 = time.perf_counter()
-        colour, covered, fell_back = lit.shade(to_jit(mi.UInt32, hits.tri[idx]),
-                                              to_jit(mi.Vector3f, hits.bary[idx].T))
-        colour = from_jit(colour)
-        covered = np.asarray(covered).astype(bool)
+        colour = np.zeros((len(idx), 3))
+        covered = np.zeros(len(idx), bool)
+        sk = np.flatnonzero(on_skin)
+        c_sk, cov_sk, fell_back = lit.shade(to_jit(mi.UInt32, hits.tri[idx[sk]]),
+                                           to_jit(mi.Vector3f, hits.bary[idx[sk]].T))
+        colour[sk] = from_jit(c_sk)
+        covered[sk] = np.asarray(cov_sk).astype(bool)
         stats.fallback_samples += int(np.asarray(fell_back).sum())
-        stats.unseen_samples += int((~covered).sum())
         stats.add_time("shade", time.perf_counter() - t0)
+
+        if use_parts and (~on_skin).any():
+            t0 = time.perf_counter()
+            pf = self.part_frame(parts, camera, self.light_basis(env), stats)
+            pt = np.flatnonzero(~on_skin)
+            tri = hits.tri[idx[pt]]
+            label = self._combined.label[tri] - 1
+            o, d = camera.pixel_rays(uv[idx[pt]])
+            p_world = o + hits.t[idx[pt], None] * d
+            q = np.empty_like(p_world)
+            normal = np.empty_like(p_world)
+            fn = self._combined.scene.face_normals()[tri]
+            for k, name in enumerate(PARTS):
+                sel = label == k
+                if not sel.any() or name not in parts:
+                    continue
+                T = parts[name]
+                q[sel] = (p_world[sel] - T[:3, 3]) @ T[:3, :3]
+                if name.startswith("eye"):
+                    centre = apply(T, np.asarray(model.template["eyes"][name]["centre"], np.float64)[None])[0]
+                    nrm = p_world[sel] - centre
+                    normal[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+                else:
+                    normal[sel] = fn[sel]
+            view = camera.centre - p_world
+            view /= np.linalg.norm(view, axis=1, keepdims=True)
+            col, cov = pf.shade(self._combined.scene.scene, to_jit(mi.UInt32, label.astype(np.uint32)),
+                                to_jit(mi.Point3f, q.T), to_jit(mi.Point3f, p_world.T),
+                                to_jit(mi.Vector3f, normal.T), to_jit(mi.Vector3f, view.T))
+            colour[pt] = from_jit(col)
+            covered[pt] = np.asarray(cov).astype(bool)
+            stats.add_time("eyes_teeth", time.perf_counter() - t0)
+        stats.unseen_samples += int((~covered).sum())
 
         t0 = time.perf_counter()
         h, w = camera.height, camera.width

@@ -36,5 +36,14 @@ def write_truth_registration(out, dest=None) -> Path:
         scene.set_vertices(v)
         uv = np.stack([c.project(v)[0] for c in cap.rig.cameras]).astype(np.float32)
         vis = np.stack([scene.visible_from(v, c) for c in cap.rig.cameras])
-        rw.write_expression(RegisteredExpression(name, v, np.ones(len(v)), uv, vis), {"source": "truth"})
+        eyes = np.full((2, 3), np.nan)
+        for i, eye in enumerate(("eye_left", "eye_right")):
+            key = f"part_{eye}"
+            if key in z and eye in template.get("eyes", {}):
+                c = np.asarray(template["eyes"][eye]["centre"])
+                eyes[i] = (z[key] @ np.append(c, 1.0))[:3]
+        teeth = np.stack([z.get(f"part_teeth_{k}", np.full((4, 4), np.nan)) for k in ("upper", "lower")])
+        head = z["part_teeth_upper"] if "part_teeth_upper" in z else np.eye(4)  # rigid with the skull
+        rw.write_expression(RegisteredExpression(name, v, np.ones(len(v)), uv, vis, eyes, teeth, head),
+                            {"source": "truth"})
     return dest

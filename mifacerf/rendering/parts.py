@@ -1,0 +1,433 @@
+"""Eyes and teeth (paper §6.3): one reference expression each, with ray-traced visibility.
+
+The captured expressions cannot sample how eyelids and lips shadow the eyes and teeth,
+so these parts are not blended: each is rendered from a single **reference expression**
+(the one where it is most visible — ``eyes_wide_open``, ``teeth_bared``) and every light
+direction's visibility is ray-traced against the *target* geometry (lids over eyes, lips
+over teeth)::
+
+    I(p) = Σ_l L_l(R_Δ) · V_l(p) · F_ref(x_ref(p))[l]
+
+where ``p`` is a point on the target's part, ``x_ref`` its place in the reference's
+camera images (the same point in the part's rigid rest frame), ``R_Δ`` the part's
+rotation from the target to the reference (lighting and view rotate with it, §6.1) and
+``V_l`` the visibility of light ``l`` from ``p``.
+
+Eyes: the captured sharp corneal highlights are removed from the reference data
+(:func:`remove_specular_peaks`: a light whose response stands far above its light-stage
+neighbours' is clamped to them) and re-synthesised as a glossy cornea lit by the same
+environment: ``F_schlick(n·v) · E_blur(reflect(−v, n)) · V``.
+
+Geometry: eyes are spheres (template centre and radius; registration gives each
+expression's centres; rotation = the head's), teeth the template's strips (two triangles
+per tooth) moved by each expression's rigid teeth transforms.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..jitarrays import to_jit
+from ..variant import ensure_variant
+from .frame import CAM_PARAMS, camera_params
+
+PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower")
+CORNEA_F0 = 0.025  # (n − 1)² / (n + 1)² for the cornea, n ≈ 1.376
+
+
+def sphere_mesh(centre, radius: float, subdivisions: int = 3):
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions, radius=radius)
+    return np.asarray(s.vertices) + np.asarray(centre), np.asarray(s.faces)
+
+
+def part_meshes(template: dict) -> dict:
+    """Rest-frame meshes {part: (vertices (n, 3), faces (m, 3))} of the template's eyes and teeth."""
+    out = {}
+    for eye in ("eye_left", "eye_right"):
+        if eye in (template.get("eyes") or {}):
+            e = template["eyes"][eye]
+            out[eye] = sphere_mesh(e["centre"], float(e["radius"]))
+    for key, part in (("upper", "teeth_upper"), ("lower", "teeth_lower")):
+        t = (template.get("teeth") or {}).get(key)
+        if t:
+            out[part] = (np.asarray(t["vertices"], np.float64), np.asarray(t["triangles"], np.int64))
+    return out
+
+
+def part_transforms(template: dict, eye_centres: np.ndarray, teeth: np.ndarray, head_pose: np.ndarray) -> dict:
+    """Rest → world 4x4 transforms of the parts in one expression (NaN entries: part absent)."""
+    out = {}
+    R = np.asarray(head_pose, np.float64)[:3, :3]
+    for i, eye in enumerate(("eye_left", "eye_right")):
+        if eye in (template.get("eyes") or {}) and np.isfinite(eye_centres[i]).all():
+            c = np.asarray(template["eyes"][eye]["centre"], np.float64)
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = eye_centres[i] - R @ c
+            out[eye] = T
+    for i, part in enumerate(("teeth_upper", "teeth_lower")):
+        if np.isfinite(teeth[i]).all():
+            out[part] = np.asarray(teeth[i], np.float64)
+    return out
+
+
+def apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def remove_specular_peaks(rf: np.ndarray, neighbours: list[np.ndarray], factor: float = 1.6) -> np.ndarray:
+    """Clamp each light's response to ``factor`` × the median over its light-stage neighbours.
+
+    rf (N, L, 3) → (N, L, 3). A sharp corneal highlight lights one or two strobes of a
+    texel's reflectance function far above their neighbours; diffuse shading varies
+    smoothly between neighbouring strobes and is left unchanged.
+    """
+    lum = rf.mean(axis=2)  # (N, L)
+    out = rf.copy()
+    for l, nb in enumerate(neighbours):
+        ref = np.median(lum[:, nb], axis=1)
+        cap_ = factor * ref
+        too = lum[:, l] > cap_
+        if too.any():
+            scale = cap_[too] / np.maximum(lum[too, l], 1e-12)
+            out[too, l] *= scale[:, None]
+    return out
+
+
+def light_neighbours(directions: np.ndarray) -> list[np.ndarray]:
+    """Each light's neighbours on the light stage (edges of the spherical Delaunay triangulation)."""
+    from scipy.spatial import ConvexHull
+
+    tri = ConvexHull(directions).simplices
+    nb = [set() for _ in range(len(directions))]
+    for a, b, c in tri:
+        nb[a] |= {b, c}
+        nb[b] |= {a, c}
+        nb[c] |= {a, b}
+    return [np.array(sorted(s), np.int64) for s in nb]
+
+
+class CombinedScene:
+    """The target's skin template plus its eyes and teeth in one Mitsuba scene, with a part id per triangle
+    (0 = skin, 1.. = PARTS index + 1)."""
+
+    def __init__(self, skin_vertices, skin_triangles, meshes: dict):
+        from .meshscene import MeshScene
+
+        self.names = [p for p in PARTS if p in meshes]
+        verts = [np.asarray(skin_vertices, np.float64)]
+        faces = [np.asarray(skin_triangles, np.int64)]
+        label = [np.zeros(len(skin_triangles), np.int64)]
+        self.rest = {}
+        self.offsets = {}
+        off = len(verts[0])
+        for p in self.names:
+            v, f = meshes[p]
+            self.rest[p] = v
+            self.offsets[p] = (off, len(v))
+            verts.append(v)
+            faces.append(f + off)
+            label.append(np.full(len(f), PARTS.index(p) + 1))
+            off += len(v)
+        self.n_skin = len(skin_vertices)
+        self.label = np.concatenate(label)
+        self.scene = MeshScene(np.concatenate(verts), np.concatenate(faces))
+
+    def set_pose(self, skin_vertices, transforms: dict) -> np.ndarray:
+        v = self.scene.vertices.copy()
+        v[: self.n_skin] = skin_vertices
+        for p in self.names:
+            o, n = self.offsets[p]
+            T = transforms.get(p)
+            # a part missing in this pose is moved far away (it cannot be seen or cast shadows)
+            v[o:o + n] = apply(T, self.rest[p]) if T is not None else self.rest[p] + 1e3
+        self.scene.set_vertices(v)
+        return v
+
+
+class PartFrame:
+    """Device state to shade eye and teeth hits of one frame (see the module docstring).
+
+    ``fields``: {part: {"reference": T_ref (4, 4), "cameras": [(c, weight)], "views": per camera
+    dict(index (H, W) int rows or −1, depth (H, W), rf rows (N, L, 3))}}; ``lighting``
+    {part: (L, 3)}; ``light_dirs`` {part: (L, 3)} world directions in the target;
+    ``env_lookup``: for eyes, a callable Vector3f → Color3f (pre-filtered environment).
+    """
+
+    def __init__(self, model_cameras, n_lights: int, parts: dict, env_lookup=None):
+        mi = ensure_variant()
+        self.mi = mi
+        self.L = n_lights
+        self.env_lookup = env_lookup
+        self.part_ids = sorted(parts)
+        n_parts = len(PARTS)
+        tab = np.zeros((n_parts, 12 + 2 * n_lights * 3))  # T_ref (12), lighting (L*3), light dirs (L*3)
+        cams = np.zeros((n_parts, 3, 2))  # (camera index, weight)
+        index_parts, depth_parts, rf_parts, offs = [], [], [], np.zeros((n_parts, 3), np.int64)
+        img_off, row_off = 0, 0
+        cam_table = []
+        for p, info in parts.items():
+            k = PARTS.index(p)
+            tab[k, :12] = info["reference"][:3, :4].reshape(-1)
+            tab[k, 12:12 + n_lights * 3] = np.asarray(info["lighting"]).reshape(-1)
+            tab[k, 12 + n_lights * 3:] = np.asarray(info["light_dirs"]).reshape(-1)
+            for m, (c, w, view) in enumerate(info["views"][:3]):
+                cams[k, m] = (len(cam_table), w)
+                cam_table.append(camera_params(model_cameras[c]))
+                idx = np.where(view["index"] >= 0, view["index"] + row_off, -1).reshape(-1)
+                index_parts.append(idx)
+                depth_parts.append(view["depth"].reshape(-1))
+                rf_parts.append(np.asarray(view["rf"]))
+                offs[k, m] = img_off
+                img_off += idx.size
+                row_off += len(view["rf"])
+        F16 = __import__("drjit").float16_array_t(mi.Float)
+        self.table = to_jit(mi.Float, tab.reshape(-1))
+        self.stride = tab.shape[1]
+        self.cams = to_jit(mi.Float, cams.reshape(-1))
+        self.offs = to_jit(mi.UInt32, offs.reshape(-1).astype(np.uint32))
+        self.cam_table = to_jit(mi.Float, np.concatenate(cam_table) if cam_table else np.zeros(CAM_PARAMS))
+        self.index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32) if index_parts
+                            else np.full(1, -1, np.int32))
+        self.depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
+        self.rf = to_jit(F16, np.concatenate(rf_parts).reshape(-1) if rf_parts else np.zeros(3))
+        self.depth_tolerance = 0.004
+
+    def shade(self, scene, part, q, p, n, view_dir, active=True):
+        """Colour (Color3f) of hits on parts: ``part`` (UInt32, PARTS index), rest-frame point ``q``,
+        world point ``p`` and normal ``n`` in the target, unit direction to the viewer ``view_dir``;
+        shadow rays are traced against ``scene`` (a Mitsuba scene holding the target geometry)."""
+        import drjit as dr
+
+        mi = self.mi
+        Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
+        active = mi.Bool(active)
+        stride, L, L3 = self.stride, self.L, self.L * 3
+
+        def T(e):
+            return dr.gather(Float, self.table, part * stride + e, active)
+
+        pr = [T(4 * r) * q.x + T(4 * r + 1) * q.y + T(4 * r + 2) * q.z + T(4 * r + 3) for r in range(3)]
+        # per camera: the 4 bilinear taps (row, weight) behind a depth test; weights renormalised
+        taps = []
+        wsum = Float(0)
+        for m in range(3):
+            cidx = UInt32(dr.gather(Float, self.cams, (part * 3 + m) * 2, active))
+            wc = dr.gather(Float, self.cams, (part * 3 + m) * 2 + 1, active)
+            off = dr.gather(UInt32, self.offs, part * 3 + m, active)
+            use = active & (wc > 0)
+
+            def P(e):
+                return dr.gather(Float, self.cam_table, cidx * CAM_PARAMS + e, use)
+
+            pc = [P(3 * r) * pr[0] + P(3 * r + 1) * pr[1] + P(3 * r + 2) * pr[2] + P(9 + r) for r in range(3)]
+            iz = dr.rcp(pc[2])
+            x, y = pc[0] * iz, pc[1] * iz
+            k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
+            r2 = x * x + y * y
+            rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            u, v = P(12) * xd + P(14), P(13) * yd + P(15)
+            wi, hi = Int32(P(21)), Int32(P(22))
+            dist = dr.norm(mi.Vector3f(pc[0], pc[1], pc[2]))
+            x0f, y0f = dr.floor(u), dr.floor(v)
+            fx, fy = u - x0f, v - y0f
+            x0, y0 = Int32(x0f), Int32(y0f)
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    xx, yy = x0 + dx, y0 + dy
+                    inside = use & (pc[2] > 0) & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
+                    pix = off + UInt32(dr.select(inside, yy * wi + xx, 0))
+                    row = dr.gather(Int32, self.index, pix, inside)
+                    depth = dr.gather(Float, self.depth, pix, inside)
+                    ok = inside & (row >= 0) & (dr.abs(depth - dist) <= self.depth_tolerance)
+                    w = dr.select(ok, wc * (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
+                    taps.append((UInt32(dr.select(ok, row, 0)) * L3, w, ok))
+                    wsum += w
+        inv = dr.select(wsum > 0, dr.rcp(wsum), 0.0)
+        origin = p + n * 2e-4
+        n_lights = dr.opaque(UInt32, L)
+
+        def body(i, r, g, b):
+            d = mi.Vector3f(T(12 + L3 + i * 3), T(12 + L3 + i * 3 + 1), T(12 + L3 + i * 3 + 2))
+            lit = active & (wsum > 0) & ~scene.ray_test(mi.Ray3f(origin, d), active & (wsum > 0))
+            acc = [r, g, b]
+            for ch in range(3):
+                val = Float(0)
+                for row, w, ok in taps:
+                    val += w * Float(dr.gather(type(self.rf), self.rf, row + i * 3 + ch, ok & lit))
+                acc[ch] = acc[ch] + dr.select(lit, val * inv * T(12 + i * 3 + ch), 0.0)
+            return (i + 1, *acc)
+
+        zero = dr.width(q.x)
+        state = (dr.opaque(UInt32, 0, zero), dr.opaque(Float, 0, zero), dr.opaque(Float, 0, zero),
+                 dr.opaque(Float, 0, zero))
+        _, r, g, b = dr.while_loop(state, lambda i, *_: i < n_lights, body)
+        colour = mi.Color3f(r, g, b)
+        if self.env_lookup is not None:  # the re-synthesised cornea highlight (eyes only)
+            is_eye = part < 2
+            cos = dr.clip(dr.dot(n, view_dir), 0.0, 1.0)
+            fresnel = CORNEA_F0 + (1 - CORNEA_F0) * (1 - cos) ** 5
+            refl = 2 * dr.dot(n, view_dir) * n - view_dir
+            seen = is_eye & active & ~scene.ray_test(mi.Ray3f(origin, refl), is_eye & active)
+            colour += dr.select(seen, fresnel * self.env_lookup(refl), 0.0)
+        return colour, active & (wsum > 0)
+
+
+# ----------------------------------------------------------------- model build
+def visible_part_pixels(reg, name: str, template: dict, triangles, meshes: dict, cameras, scene=None,
+                        size: int = 64) -> dict:
+    """{part: number of pixels (over all cameras, at ``size``² resolution) where it is seen in expression ``name``}."""
+    r = reg.expression(name)
+    T = part_transforms(template, r.eye_centres, r.teeth, r.head_pose)
+    scene = scene or CombinedScene(r.vertices, triangles, meshes)
+    scene.set_pose(r.vertices, T)
+    counts = {p: 0 for p in scene.names}
+    for cam in cameras:
+        hits, _ = scene.scene.render_hits(cam.resized(size, size), spp=1)
+        label = scene.label[hits.tri[hits.valid]]
+        for p in scene.names:
+            counts[p] += int((label == PARTS.index(p) + 1).sum()) if p in T else 0
+    return counts
+
+
+def choose_references(reg, names: list[str], template: dict, triangles, cameras) -> dict:
+    """The reference expression of the eyes and of the teeth: the expression where they are most visible
+    (paper §6.3), counted by ray casting every registered expression from every camera."""
+    meshes = part_meshes(template)
+    if not meshes:
+        return {}
+    first = reg.expression(names[0])
+    scene = CombinedScene(first.vertices, triangles, meshes)
+    seen = {n: visible_part_pixels(reg, n, template, triangles, meshes, cameras, scene) for n in names}
+    out = {}
+    for group, parts in (("eyes", ("eye_left", "eye_right")), ("teeth", ("teeth_upper", "teeth_lower"))):
+        score = {n: sum(seen[n].get(p, 0) for p in parts) for n in names}
+        best = max(names, key=lambda n: score[n])
+        if score[best] > 0:
+            out[group] = best
+    return out
+
+
+def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, cameras, references: dict,
+                      light_directions: np.ndarray) -> dict:
+    """Write the eye and teeth fields of their reference expressions (model folder, ``fields/<ref>/<cam>.parts*``).
+
+    ``references``: {"eyes": name, "teeth": name}. Returns {reference name: [parts stored]}.
+    """
+    import os
+
+    meshes = part_meshes(template)
+    if not meshes:
+        return {}
+    groups = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower")}
+    wanted: dict[str, list] = {}
+    for group, ref in references.items():
+        wanted.setdefault(ref, []).extend(p for p in groups[group] if p in meshes)
+    neighbours = light_neighbours(light_directions)
+    stored = {}
+    for ref, want in wanted.items():
+        r = reg.expression(ref)
+        T = part_transforms(template, r.eye_centres, r.teeth, r.head_pose)
+        want = [p for p in want if p in T]
+        if not want:
+            continue
+        cs = CombinedScene(r.vertices, triangles, meshes)
+        cs.set_pose(r.vertices, T)
+        for cam in cameras:
+            hits, _ = cs.scene.render_hits(cam, spp=1)
+            sel = np.flatnonzero(hits.valid)
+            label = cs.label[hits.tri[sel]]
+            keep = np.isin(label, [PARTS.index(p) + 1 for p in want])
+            sel, label = sel[keep], label[keep] - 1
+            rows, cols = sel // cam.width, sel % cam.width
+            rf = reg.field(ref, cam.name)[:, rows, cols].transpose(1, 0, 2)
+            eyes = label < 2
+            if eyes.any():
+                rf[eyes] = remove_specular_peaks(rf[eyes], neighbours)
+            base = writer.root / "fields" / ref / cam.name
+            base.parent.mkdir(parents=True, exist_ok=True)
+            tmp = base.with_name(f".{cam.name}.parts.tmp.npz")
+            np.savez_compressed(tmp, pixels=np.stack([rows, cols], 1).astype(np.int32), part=label.astype(np.int8),
+                                depth=hits.t[sel].astype(np.float32))
+            os.replace(tmp, base.with_suffix(".parts.npz"))
+            tmp = base.with_name(f".{cam.name}.parts.tmp.npy")
+            np.save(tmp, rf.astype(np.float16))
+            os.replace(tmp, base.with_suffix(".parts.rf.npy"))
+        stored[ref] = want
+    return stored
+
+
+# ------------------------------------------------------------- target parts
+def rotation_blend(Rs: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to Σ w_i R_i: the polar factor, never a reflection."""
+    M = np.einsum("i,ijk->jk", w, Rs)
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def blend_transforms(Ts: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Weighted blend of rigid 4x4 transforms (linear translations, polar-factor rotation)."""
+    out = np.eye(4)
+    out[:3, :3] = rotation_blend(Ts[:, :3, :3], w)
+    out[:3, 3] = np.einsum("i,ij->j", w, Ts[:, :3, 3])
+    return out
+
+
+def target_parts_from_weights(model, weights: dict[str, float]) -> dict:
+    """Part transforms of a linear blend of captured expressions (the expressions' registered parts, blended)."""
+    template = model.template
+    idx = [model.expression_index(n) for n in weights]
+    w = np.array(list(weights.values()), np.float64)
+    out = {}
+    per = [part_transforms(template, model.eye_centres[s], model.teeth[s], model.head_pose[s]) for s in idx]
+    for p in PARTS:
+        have = [(T[p], wi) for T, wi in zip(per, w) if p in T]
+        if have:
+            Ts = np.stack([h[0] for h in have])
+            ws = np.array([h[1] for h in have])
+            out[p] = blend_transforms(Ts, ws / ws.sum())
+    return out
+
+
+def _kinds(template: dict) -> list:
+    return [v["kind"] for v in template.get("vertices", [])]
+
+
+def target_parts_from_mesh(model, mesh: np.ndarray) -> dict:
+    """Part transforms for an arbitrary target mesh (§4.2): head pose from the ear and nose-bridge points
+    (Horn, against the neutral), eyes and upper teeth rigid with the head; the jaw (lower teeth) from
+    the lower lip and chin vertices (Horn, against the neutral)."""
+    from ..blending import horn
+
+    template = model.template
+    kinds = np.array(_kinds(template))
+    s0 = model.expression_index(model.neutral)
+    neutral = model.vertices[s0]
+    base = part_transforms(template, model.eye_centres[s0], model.teeth[s0], model.head_pose[s0])
+    head_ids = np.flatnonzero(np.isin(kinds, ["ear", "nose_bridge"]))
+    out = {}
+    if len(head_ids) >= 3:
+        R, t = horn(neutral[head_ids], mesh[head_ids])
+        H = np.eye(4)
+        H[:3, :3], H[:3, 3] = R, t
+    else:
+        H = np.eye(4)
+    for p in ("eye_left", "eye_right", "teeth_upper"):
+        if p in base:
+            out[p] = H @ base[p]
+    jaw_ids = np.flatnonzero(kinds == "lip_lower")
+    chin = np.asarray((template.get("regions") or {}).get("chin", []), np.int64)
+    jaw_ids = np.union1d(jaw_ids, chin)
+    if "teeth_lower" in base:
+        if len(jaw_ids) >= 3:
+            R, t = horn(neutral[jaw_ids], mesh[jaw_ids])
+            J = np.eye(4)
+            J[:3, :3], J[:3, 3] = R, t
+            out["teeth_lower"] = J @ base["teeth_lower"]
+        else:
+            out["teeth_lower"] = H @ base["teeth_lower"]
+    return out
