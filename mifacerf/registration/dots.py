@@ -176,12 +176,15 @@ def bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.where(ok, out, 0.0)
 
 
-def peak_near(img: np.ndarray, uv: np.ndarray, radius: float = 1.5) -> tuple[np.ndarray, np.ndarray]:
+def peak_near(img: np.ndarray, uv: np.ndarray, radius: float = 1.5,
+              centroid_sigma: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel local maxima of a map near pixel positions ``uv`` (N, 2).
 
     The largest pixel within ``radius`` (a square window) of each position, refined by a
-    separable parabola through its 3 × 3 neighbourhood. Returns (peaks (N, 2), values (N,));
-    NaN / 0 for positions outside the image.
+    separable parabola through its 3 × 3 neighbourhood; with ``centroid_sigma`` the position
+    is then refined as the centroid of the (non-negative) map under a Gaussian window of that
+    width, iterated (more accurate for blobs of a pixel or two). Returns (peaks (N, 2),
+    values (N,)); NaN / 0 for positions outside the image.
     """
     h, w = img.shape
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -210,6 +213,29 @@ def peak_near(img: np.ndarray, uv: np.ndarray, radius: float = 1.5) -> tuple[np.
     peaks = np.stack([pu + ou, pv + ov], 1).astype(np.float64)
     value = f0 - 0.25 * ((fl - fr) * ou + (fu - fd) * ov)
     inside = ok & (uv[:, 0] >= -0.5) & (uv[:, 1] >= -0.5) & (uv[:, 0] <= w - 0.5) & (uv[:, 1] <= h - 0.5)
+    if centroid_sigma is not None and n:
+        peaks = centroid(img, peaks, pu, pv, centroid_sigma)
     peaks[~inside] = np.nan
     value = np.where(inside, value, 0.0)
     return peaks, value
+
+
+def centroid(img: np.ndarray, start: np.ndarray, pu: np.ndarray, pv: np.ndarray, sigma: float,
+             iterations: int = 3) -> np.ndarray:
+    """Gaussian-windowed centroids of ``max(img, 0)`` about integer peaks (pu, pv), starting at ``start``."""
+    h, w = img.shape
+    k = int(np.ceil(2.5 * sigma))
+    du, dv = np.meshgrid(np.arange(-k, k + 1), np.arange(-k, k + 1))
+    U = np.clip(pu[:, None, None] + du[None], 0, w - 1)
+    V = np.clip(pv[:, None, None] + dv[None], 0, h - 1)
+    W = np.maximum(img[V, U], 0.0).astype(np.float64)
+    W *= (U == pu[:, None, None] + du[None]) & (V == pv[:, None, None] + dv[None])  # nothing past the border
+    c = start - np.stack([pu, pv], 1)
+    for _ in range(iterations):
+        g = np.exp(-((du[None] - c[:, :1, None]) ** 2 + (dv[None] - c[:, 1:, None]) ** 2) / (2 * sigma ** 2)) * W
+        tot = g.sum((1, 2))
+        good = tot > 1e-12
+        cu = np.where(good, (g * du[None]).sum((1, 2)) / np.maximum(tot, 1e-300), c[:, 0])
+        cv = np.where(good, (g * dv[None]).sum((1, 2)) / np.maximum(tot, 1e-300), c[:, 1])
+        c = np.clip(np.stack([cu, cv], 1), -1.0, 1.0)
+    return np.stack([pu, pv], 1) + c

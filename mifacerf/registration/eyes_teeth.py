@@ -59,6 +59,25 @@ def robust_rigid(P_neutral: np.ndarray, P_expr: np.ndarray, keep: float = 0.35, 
     return T
 
 
+def refine_rigid(T0: np.ndarray, P: np.ndarray, Q: np.ndarray, Pr: np.ndarray, Qr: np.ndarray, scale: float,
+                 iterations: int = 4) -> tuple[np.ndarray, int]:
+    """Refine a rigid transform fitted to marks (P → Q) with extra correspondences (Pr → Qr) from
+    regions that move almost rigidly: those within ``2·max(median residual, scale)`` of the
+    current fit are added (iteratively, starting from ``T0``). Returns (T, number of extras used)."""
+    T = T0
+    used = 0
+    for _ in range(iterations):
+        if len(Pr) < 3:
+            break
+        r = np.linalg.norm(apply(T, Pr) - Qr, axis=1)
+        keep = r <= 2.0 * max(float(np.median(r)), scale)
+        used = int(keep.sum())
+        if used < 3:
+            break
+        T = rigid_from_points(np.concatenate([P, Pr[keep]]), np.concatenate([Q, Qr[keep]]))
+    return T, used
+
+
 def triangulate_marks(cams: list[Camera], marks: dict) -> np.ndarray | None:
     """One 3-D point from clicks {camera name: (u, v)} (≥ 2 views), or None."""
     names = [c.name for c in cams]
@@ -79,11 +98,15 @@ def ellipse_centre(poly: np.ndarray) -> np.ndarray:
     """Centre (2,) of the ellipse fitted to a closed polyline (P ≥ 5 points, pixels)."""
     import cv2
 
-    pts = np.asarray(poly, np.float32).reshape(-1, 1, 2)
-    if len(pts) >= 5:
-        (cx, cy), _, _ = cv2.fitEllipse(pts)
-        return np.array([cx, cy], np.float64)
-    return np.asarray(poly, np.float64).mean(0)
+    P = np.asarray(poly, np.float64).reshape(-1, 2)
+    mean = P.mean(0)
+    if len(P) >= 8:
+        (cx, cy), _, _ = cv2.fitEllipse(P.astype(np.float32).reshape(-1, 1, 2))
+        c = np.array([cx, cy], np.float64)
+        extent = np.ptp(P, axis=0).max()
+        if np.isfinite(c).all() and np.linalg.norm(c - mean) <= 0.25 * extent:
+            return c
+    return mean
 
 
 def iris_centre(cams: list[Camera], views: dict) -> np.ndarray | None:

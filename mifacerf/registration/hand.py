@@ -17,11 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-TEMPLATE_FORMAT = "mifacerf.template"
+TEMPLATE_SCHEMA = "mifacerf.template/1"
 COARSE_FORMAT = "mifacerf.coarse_points"
 ROTOSCOPE_FORMAT = "mifacerf.rotoscope"
 MARGIN_NAMES = ("lip_upper", "lip_lower", "lid_upper_L", "lid_lower_L", "lid_upper_R", "lid_lower_R")
+HOLE_MARGINS = {"mouth": ("lip_upper", "lip_lower"), "eye_left": ("lid_upper_L", "lid_lower_L"),
+                "eye_right": ("lid_upper_R", "lid_lower_R")}
 HEAD_POINT_NAMES = ("ear_L", "ear_R", "nose_bridge")
+EYE_SIDES = {"eye_left": "L", "eye_right": "R"}
 DEFAULT_DOT_RADIUS = 0.0015
 
 
@@ -29,20 +32,40 @@ class HandInputError(ValueError):
     """A hand-input file that cannot be used at all (the message names it)."""
 
 
+def margins_from_holes(holes: dict, kinds: list) -> dict:
+    """Ordered margins from the template's hole loops ``[corner, upper..., corner, lower reversed...]``."""
+    out = {}
+    for hole, loop in holes.items():
+        if hole not in HOLE_MARGINS:
+            continue
+        loop = [int(i) for i in loop]
+        corners = [k for k, v in enumerate(loop) if kinds[v].endswith("_corner")]
+        if len(corners) != 2 or corners[0] != 0:
+            continue
+        k = corners[1]
+        up_name, lo_name = HOLE_MARGINS[hole]
+        out[up_name] = np.array(loop[:k + 1], np.int64)
+        out[lo_name] = np.array([loop[0]] + loop[:k:-1] + [loop[k]], np.int64)
+    return out
+
+
 @dataclass
 class Template:
-    """The registration template (see docs/registration.md for every key).
+    """The registration template, schema ``mifacerf.template/1`` (docs/registration.md).
 
     ``vertices`` (T, 3) neutral positions as the user placed them; ``kinds`` (T,) strings
-    (``"dot"`` for fiducials); ``triangles`` (F, 3); ``coarse`` (K,) vertex ids of the coarse
-    points; ``coarse_triangles`` (G, 3) indices into ``coarse``; ``regions`` {name: ids};
-    ``margins`` {name: ordered ids}; ``teeth`` {"upper"/"lower": ids}; ``eyes`` {"L"/"R": {...}};
-    ``head_points`` {name: vertex id}; ``lower_teeth_point`` (3,) neutral position of the
-    marked lower-teeth point (or None); ``dot_radius`` metres; ``raw`` the JSON dict.
+    (``"dot"`` for fiducials); ``names`` (T,); ``triangles`` (F, 3); ``coarse`` (K,) vertex ids of
+    the coarse points; ``coarse_triangles`` (G, 3) indices into ``coarse``; ``regions``
+    {name: ids}; ``margins`` {lip_upper, lip_lower, lid_upper_L, ...: ordered ids, corners at
+    both ends}; ``teeth`` {"upper"/"lower": {"vertices" (n, 3) in the neutral head frame,
+    "triangles", "mark" (optional strip vertex the user clicks)}}; ``eyes`` {"L"/"R": {"centre",
+    "radius", "iris_radius", "iris_depth"}}; ``head_points`` {ear_L, ear_R, nose_bridge: vertex
+    id}; ``dot_radius`` metres; ``raw`` the JSON dict (what the registration folder stores).
     """
 
     vertices: np.ndarray
     kinds: list
+    names: list
     triangles: np.ndarray
     coarse: np.ndarray
     coarse_triangles: np.ndarray
@@ -51,7 +74,6 @@ class Template:
     teeth: dict
     eyes: dict
     head_points: dict
-    lower_teeth_point: np.ndarray | None
     dot_radius: float
     raw: dict = field(repr=False, default_factory=dict)
 
@@ -60,54 +82,46 @@ class Template:
         return len(self.vertices)
 
     @property
-    def dot_ids(self) -> np.ndarray:
-        return np.flatnonzero(np.array([k == "dot" for k in self.kinds]))
-
-    @property
     def is_dot(self) -> np.ndarray:
         return np.array([k == "dot" for k in self.kinds])
 
-    def teeth_ids(self) -> np.ndarray:
-        ids = [np.asarray(v, np.int64) for v in self.teeth.values()]
-        return np.unique(np.concatenate(ids)) if ids else np.zeros(0, np.int64)
+    @property
+    def dot_ids(self) -> np.ndarray:
+        return np.flatnonzero(self.is_dot)
+
+    @property
+    def lower_teeth_point(self) -> np.ndarray | None:
+        t = self.teeth.get("lower")
+        if not t or t.get("mark") is None:
+            return None
+        return np.asarray(t["vertices"], np.float64)[int(t["mark"])]
 
     def margin_ids(self) -> np.ndarray:
         ids = [np.asarray(v, np.int64) for v in self.margins.values()]
         return np.unique(np.concatenate(ids)) if ids else np.zeros(0, np.int64)
 
     def to_dict(self) -> dict:
-        """The JSON dict (``raw`` updated with the canonical keys)."""
-        d = dict(self.raw)
-        d.update({
-            "format": TEMPLATE_FORMAT, "version": 1, "n_vertices": self.n_vertices,
-            "vertices": np.round(self.vertices, 9).tolist(), "kinds": list(self.kinds),
-            "triangles": self.triangles.tolist(), "coarse": self.coarse.tolist(),
-            "coarse_triangles": self.coarse_triangles.tolist(),
-            "regions": {k: np.asarray(v).tolist() for k, v in self.regions.items()},
-            "margins": {k: np.asarray(v).tolist() for k, v in self.margins.items()},
-            "teeth": {k: np.asarray(v).tolist() for k, v in self.teeth.items()},
-            "eyes": self.eyes, "head_points": self.head_points,
-            "lower_teeth_point": None if self.lower_teeth_point is None else self.lower_teeth_point.tolist(),
-            "dot_radius": self.dot_radius,
-        })
-        return d
+        """The JSON dict, as read (schema ``mifacerf.template/1``)."""
+        return dict(self.raw)
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "template") -> "Template":
+        if d.get("schema") != TEMPLATE_SCHEMA:
+            raise HandInputError(f"{source}: not a {TEMPLATE_SCHEMA} document (schema={d.get('schema')!r})")
         try:
-            V = np.asarray(d["vertices"], np.float64).reshape(-1, 3)
+            vs = d["vertices"]
+            V = np.array([v["position"] for v in vs], np.float64).reshape(-1, 3)
+            kinds = [str(v["kind"]) for v in vs]
+            names = [str(v.get("name", "")) for v in vs]
             F = np.asarray(d["triangles"], np.int64).reshape(-1, 3)
-            kinds = list(d["kinds"])
         except (KeyError, ValueError, TypeError) as exc:
-            raise HandInputError(f"{source}: needs 'vertices', 'triangles' and 'kinds' ({exc})") from exc
-        n = int(d.get("n_vertices", len(V)))
-        if len(V) != n or len(kinds) != n:
-            raise HandInputError(f"{source}: {len(V)} vertices, {len(kinds)} kinds, n_vertices={n}")
+            raise HandInputError(f"{source}: needs 'vertices' (kind, position) and 'triangles' ({exc})") from exc
+        n = len(V)
         if F.size and (F.min() < 0 or F.max() >= n):
             raise HandInputError(f"{source}: triangles index vertices out of range")
         if not np.isfinite(V).all():
             raise HandInputError(f"{source}: non-finite vertex positions")
-        coarse = np.asarray(d.get("coarse", []), np.int64).reshape(-1)
+        coarse = np.asarray(d.get("coarse_points", []), np.int64).reshape(-1)
         if coarse.size and (coarse.min() < 0 or coarse.max() >= n):
             raise HandInputError(f"{source}: coarse point ids out of range")
         ct = d.get("coarse_triangles")
@@ -116,15 +130,23 @@ class Template:
         ct = np.asarray(ct, np.int64).reshape(-1, 3)
         if ct.size and (ct.min() < 0 or ct.max() >= len(coarse)):
             raise HandInputError(f"{source}: coarse_triangles index the coarse list out of range")
-        ltp = d.get("lower_teeth_point")
-        hp = {k: int(v) for k, v in (d.get("head_points") or {}).items()}
-        return cls(V, kinds, F, coarse, ct,
+        margins = {k: np.asarray(v, np.int64) for k, v in (d.get("margins") or {}).items()}
+        if not margins:
+            margins = margins_from_holes(d.get("holes") or {}, kinds)
+        teeth = {}
+        for k, t in (d.get("teeth") or {}).items():
+            teeth[k] = {"vertices": np.asarray(t["vertices"], np.float64).reshape(-1, 3),
+                        "triangles": np.asarray(t.get("triangles", []), np.int64).reshape(-1, 3),
+                        "part": t.get("part"), "mark": t.get("mark")}
+        eyes = {}
+        for k, e in (d.get("eyes") or {}).items():
+            side = EYE_SIDES.get(k, k)
+            eyes[side] = dict(e)
+        head_points = {nm: i for i, nm in enumerate(names) if nm in HEAD_POINT_NAMES}
+        head_points.update({k: int(v) for k, v in (d.get("head_points") or {}).items()})
+        return cls(V, kinds, names, F, coarse, ct,
                    {k: np.asarray(v, np.int64) for k, v in (d.get("regions") or {}).items()},
-                   {k: np.asarray(v, np.int64) for k, v in (d.get("margins") or {}).items()},
-                   {k: np.asarray(v, np.int64) for k, v in (d.get("teeth") or {}).items()},
-                   dict(d.get("eyes") or {}), hp,
-                   None if ltp is None else np.asarray(ltp, np.float64).reshape(3),
-                   float(d.get("dot_radius", DEFAULT_DOT_RADIUS)), dict(d))
+                   margins, teeth, eyes, head_points, float(d.get("dot_radius", DEFAULT_DOT_RADIUS)), dict(d))
 
 
 def auto_coarse_triangles(P: np.ndarray) -> np.ndarray:

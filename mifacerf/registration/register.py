@@ -47,6 +47,10 @@ from .triangulate import triangulate
 from .visibility import Visibility
 
 
+HEAD = ("ear_L", "ear_R", "nose_bridge")
+RIGID_REGIONS = ("forehead", "nose")    #: template regions that move (almost) with the skull
+
+
 class RegistrationInputError(ValueError):
     """Registration cannot start: the message says which input is missing or unusable."""
 
@@ -105,14 +109,11 @@ class Registrar:
         self.dots = self.tpl.dot_ids
         self.is_dot = self.tpl.is_dot
         self.neighbours = dot_graph(self.tpl.n_vertices, self.tpl.triangles, self.is_dot)
-        teeth = self.tpl.teeth_ids()
         margins = self.tpl.margin_ids()
-        self.teeth_ids = teeth
-        self.extras = np.setdiff1d(np.flatnonzero(~self.is_dot), teeth)
+        self.extras = np.flatnonzero(~self.is_dot)
         if margins.size:
             dist = rings(self.tpl.n_vertices, self.tpl.triangles, margins, self.opt.movable_rings)
-            mov = np.flatnonzero((dist >= 0) & ~self.is_dot)
-            self.movable = np.setdiff1d(mov, teeth)
+            self.movable = np.flatnonzero((dist >= 0) & ~self.is_dot)
         else:
             self.movable = np.zeros(0, np.int64)
         self.neutral = next((e.name for e in capture.expressions if e.category == "neutral"),
@@ -187,7 +188,8 @@ class Registrar:
         self.writer.set_meta("dot_filter", self.filter.to_dict())
 
     def views(self, e: Expr) -> Views:
-        return Views(self.cams, [self.filter.strength(e.diffuse[n], n) for n in self.names])
+        return Views(self.cams, [self.filter.strength(e.diffuse[n], n) for n in self.names],
+                     centroid_sigma=max(1.2, 1.5 * self.filter.sigma))
 
     def register_dots(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float) -> tuple:
         o = self.opt
@@ -271,8 +273,9 @@ class Registrar:
         e.report["lips_eyelids"] = out
         return V
 
-    def head_marks(self, name: str) -> dict:
-        """Triangulated ear / nose-bridge marks of an expression {name: (3,)}."""
+    def head_points(self, name: str, V: np.ndarray, status: np.ndarray, known: dict) -> dict:
+        """Ear / nose-bridge points of an expression {name: (3,)}: the user's marks (rotoscope
+        points, or the coarse points when those are the head points), else registered vertices."""
         rot = self.hand.rotoscope.get(name)
         out = {}
         for pname in ("ear_L", "ear_R", "nose_bridge"):
@@ -280,45 +283,54 @@ class Registrar:
                 p = ET.triangulate_marks(self.cams, rot.points[pname])
                 if p is not None:
                     out[pname] = p
+                    continue
+            vid = self.tpl.head_points.get(pname)
+            if vid is None:
+                continue
+            if vid in known:
+                out[pname] = np.asarray(known[vid], np.float64)
+            elif status[vid] == 1 and self.is_dot[vid]:
+                out[pname] = V[vid].copy()
         return out
 
-    def head_pose(self, name: str, X: np.ndarray, status: np.ndarray, e: Expr) -> np.ndarray:
+    def head_pose(self, name: str, X: np.ndarray, status: np.ndarray, known: dict, e: Expr) -> np.ndarray:
         if name == self.neutral:
             e.report["head_pose"] = {"source": "the neutral defines the head frame"}
             return np.eye(4)
-        ref = self.writer.meta.get("head_points_neutral", {})
-        marks = self.head_marks(name)
+        ref = {k: np.asarray(v) for k, v in self.writer.meta.get("head_points_neutral", {}).items()}
+        marks = self.head_points(name, X, status, known)
         common = [k for k in ("ear_L", "ear_R", "nose_bridge") if k in marks and k in ref]
-        if len(common) == 3:
-            T = ET.rigid_from_points(np.array([ref[k] for k in common]), np.array([marks[k] for k in common]))
-            e.report["head_pose"] = {"source": "ear and nose-bridge marks"}
-            return T
-        hp = self.tpl.head_points
         N = self.registered[self.neutral]
-        if len(hp) == 3 and all(status[v] == 1 and N.status[v] == 1 for v in hp.values()):
-            ids = np.array([hp[k] for k in sorted(hp)])
-            e.report["head_pose"] = {"source": "registered ear / nose-bridge vertices"}
-            return ET.rigid_from_points(N.vertices[ids], X[ids])
-        ok = self.dots[(status[self.dots] == 1) & (N.status[self.dots] == 1)]
-        e.flags.append("head pose: ear / nose-bridge points not marked; fitted rigidly to the most rigid "
-                       "third of the registered fiducials instead")
-        e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no marks)"}
-        return ET.robust_rigid(N.vertices[ok], X[ok])
+        both = self.dots[(status[self.dots] == 1) & (N.status[self.dots] == 1)]
+        rigid = np.intersect1d(both, np.concatenate([self.tpl.regions.get(k, np.zeros(0, np.int64))
+                                                     for k in RIGID_REGIONS])) if self.tpl.regions else both
+        if len(common) == 3:
+            P = np.array([ref[k] for k in common])
+            Q = np.array([marks[k] for k in common])
+            T3 = ET.rigid_from_points(P, Q)
+            T, n_used = ET.refine_rigid(T3, P, Q, N.vertices[rigid], X[rigid], self.fp)
+            dR = T3[:3, :3].T @ T[:3, :3]
+            e.report["head_pose"] = {
+                "source": f"ear and nose-bridge points, refined with {n_used} rigidly moving fiducials "
+                          "(forehead, nose)",
+                "refinement_deg": round(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))), 4)}
+            return T
+        e.flags.append(f"head pose: ear / nose-bridge points missing ({sorted(set(HEAD) - set(common))}); "
+                       "fitted rigidly to the most rigid third of the registered fiducials instead")
+        e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no ear / nose marks)"}
+        return ET.robust_rigid(N.vertices[both], X[both])
 
-    def place_teeth(self, name: str, V: np.ndarray, status: np.ndarray, T_head: np.ndarray, e: Expr):
+    def place_teeth(self, name: str, T_head: np.ndarray, e: Expr) -> np.ndarray:
+        """Rigid transforms (2, 4, 4) of the upper and lower teeth (template rest frame → world)."""
         teeth = np.full((2, 4, 4), np.nan)
         if not self.tpl.teeth:
+            e.report["teeth"] = "the template has no teeth"
             return teeth
-        base = self.registered[self.neutral].vertices if name != self.neutral else self.tpl.vertices
-        up = self.tpl.teeth.get("upper", np.zeros(0, np.int64))
-        lo = self.tpl.teeth.get("lower", np.zeros(0, np.int64))
         teeth[0] = T_head
         info = {"upper": "rigid with the head"}
-        T_lo = T_head
         if name == self.neutral:
-            T_lo = np.eye(4)
+            teeth[1] = np.eye(4)
             info["lower"] = "the template (neutral)"
-            status[lo] = 1
         else:
             rot = self.hand.rotoscope.get(name)
             mark = None
@@ -326,17 +338,12 @@ class Registrar:
                 mark = ET.triangulate_marks(self.cams, rot.points["lower_teeth"])
             ref = self.tpl.lower_teeth_point
             if mark is not None and ref is not None:
-                T_lo = ET.lower_teeth_transform(T_head, ref, mark)
+                teeth[1] = ET.lower_teeth_transform(T_head, ref, mark)
                 info["lower"] = "marked point + head rotation"
-                status[lo] = 1
             else:
-                info["lower"] = "no lower-teeth mark: moved with the head (predicted)"
-                e.flags.append("lower teeth: no marked point in ≥ 2 views; moved with the head (status 0)")
-                status[lo] = 0
-        status[up] = 1
-        teeth[1] = T_lo
-        V[up] = ET.apply(T_head, base[up])
-        V[lo] = ET.apply(T_lo, base[lo])
+                teeth[1] = T_head
+                info["lower"] = "predicted: no lower-teeth mark in ≥ 2 views; moved with the head"
+                e.flags.append("lower teeth: no marked point in ≥ 2 views; moved with the head (predicted)")
         e.report["teeth"] = info
         return teeth
 
@@ -378,6 +385,10 @@ class Registrar:
         X, snapped, _ = self.register_dots(e, views, pred, known, radius)
         status = np.zeros(T, np.int8)
         status[self.dots[snapped[self.dots]]] = 1
+        unsnapped_known = [int(v) for v in known if self.is_dot[v] and not snapped[v]]
+        if unsnapped_known:
+            e.flags.append(f"coarse fiducial(s) {unsnapped_known} did not snap to their dot: kept at the "
+                           "user's clicks")
         for vid in known:  # coarse points placed from the user's clicks
             status[vid] = 1
         not_reg = self.dots[status[self.dots] != 1]
@@ -395,15 +406,18 @@ class Registrar:
                 V[ex[sel]] = P
                 ex_status[sel] = placed
         status[ex] = ex_status.astype(np.int8)
-        T_head = self.head_pose(name, V, status, e)
-        if name == self.neutral:
-            marks = self.head_marks(name)
-            hp = self.tpl.head_points
-            ref = {k: marks.get(k, V[hp[k]] if k in hp else None) for k in ("ear_L", "ear_R", "nose_bridge")}
-            self.writer.set_meta("head_points_neutral", {k: np.asarray(v).tolist() for k, v in ref.items()
-                                                         if v is not None})
-        teeth = self.place_teeth(name, V, status, T_head, e)
+        for vid, p in known.items():  # non-fiducial coarse points (ears, mouth corners...): the clicks
+            if not self.is_dot[vid]:
+                V[vid] = p
+                status[vid] = 1
         V = self.relax_contours(name, V, status, e)
+        T_head = self.head_pose(name, V, status, known, e)
+        if name == self.neutral:
+            hp = self.head_points(name, V, status, known)
+            for k, vid in self.tpl.head_points.items():
+                hp.setdefault(k, V[vid])
+            self.writer.set_meta("head_points_neutral", {k: np.asarray(v).tolist() for k, v in hp.items()})
+        teeth = self.place_teeth(name, T_head, e)
         eyes = self.eye_centres(T_head)
         uv, visible = texture_coordinates(V, self.cams, self.vis)
         reg = RegisteredExpression(name, V, status, uv, visible, eyes, teeth, T_head)
@@ -506,7 +520,15 @@ class Registrar:
                 depth = ET.eye_depth(self.tpl.eyes.get(side, {}))
                 est[side].append(ET.apply(Tinv, (c3 - depth * d)[None])[0])
                 used.append(f"{name}:{side}")
-        rel = {s: (np.mean(v, axis=0).tolist() if v else None) for s, v in est.items()}
+        rel = {}
+        for side, v in est.items():
+            if not v:
+                rel[side] = None
+                continue
+            v = np.asarray(v)
+            med = np.median(v, axis=0)
+            keep = np.linalg.norm(v - med, axis=1) <= max(3 * self.fp, 0.002)   # drop wild marks
+            rel[side] = v[keep].mean(0).tolist()
         info = {"head_frame_centres": rel, "from": used,
                 "spread_m": {s: (float(np.linalg.norm(np.std(v, axis=0))) if len(v) > 1 else None)
                              for s, v in est.items()}}

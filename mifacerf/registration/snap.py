@@ -51,9 +51,10 @@ def ball(radius: float, step: float) -> np.ndarray:
 class Views:
     """The dot-strength maps of one expression: ``cams`` (C cameras), ``maps`` (C, H, W)."""
 
-    def __init__(self, cams: list[Camera], maps):
+    def __init__(self, cams: list[Camera], maps, centroid_sigma: float | None = None):
         self.cams = list(cams)
         self.maps = [np.asarray(m, np.float32) for m in maps]
+        self.centroid_sigma = centroid_sigma
 
     def per_view(self, X: np.ndarray) -> np.ndarray:
         """(C, M) strength of points X (M, 3) in each view (0 outside the image)."""
@@ -122,7 +123,7 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
         if sel.size == 0:
             continue
         p, _ = cam.project(Xf[sel])
-        pk, val = peak_near(m, p, 1.0)
+        pk, val = peak_near(m, p, 1.0, views.centroid_sigma)
         good = (val >= min_view_strength) & (np.linalg.norm(pk - p, axis=1) <= 1.5)
         uv[c, sel[good]] = pk[good]
     tr = triangulate(views.cams, uv, max_error=max_reproj)

@@ -39,8 +39,8 @@ IRIS_SAMPLES = 24
 class TruthExpression:
     """What the synthetic user looks at for one expression (truth; never written as such).
 
-    ``template_vertices`` (T, 3); ``mesh`` (vertices (V, 3), faces (F, 3)) the visible surface
-    used to decide which views see a point; ``irises`` {"L"/"R": (centre (3,), normal (3,), radius)};
+    ``template_vertices`` (T, 3); ``mesh`` (vertices (V, 3), faces (F, 3)) the surface (skin, teeth;
+    not the eyeballs, on which the lids and the irises lie) used to decide which views see a point; ``irises`` {"L"/"R": (centre (3,), normal (3,), radius)};
     ``lower_teeth_point`` (3,) the marked point on the lower teeth; ``eyes_look_at`` "forward"
     when the subject looks straight ahead (the user was told so), else None.
     """
@@ -53,12 +53,19 @@ class TruthExpression:
     eyes_look_at: str | None = None
 
 
+_SCENES: dict = {}
+
+
 def _visibility(rig: Rig, truth: TruthExpression, points: np.ndarray, min_cos: float = 0.25) -> np.ndarray:
     """(C, N) which cameras see each point (ray-traced against the truth surface, not grazing)."""
     from ..rendering.meshscene import MeshScene
 
     V, F = truth.mesh
-    scene = MeshScene(V, F)
+    key = id(truth)
+    if _SCENES.get("key") != key:        # one ray-casting scene per expression, reused
+        _SCENES.clear()
+        _SCENES.update(key=key, scene=MeshScene(V, F), normals=None)
+    scene = _SCENES["scene"]
     vis = np.zeros((len(rig.cameras), len(points)), bool)
     normals = _point_normals(V, F, points)
     for c, cam in enumerate(rig.cameras):
@@ -112,11 +119,39 @@ def _place(rig: Rig, X: np.ndarray, vis: np.ndarray, rng, sigma: float, max_view
     return out
 
 
-def _best_views(vis: np.ndarray, names: list[str], k: int = 2) -> list[str]:
-    """The ``k`` cameras that see most of a feature (ties: the earlier camera)."""
+def _curve_views(rig: Rig, P: np.ndarray, vis: np.ndarray, k: int = 3) -> list[str]:
+    """The views a rotoscoper picks for a curve P (n, 3): among views seeing most of it, the pair whose
+    viewing directions differ most *across* the curve (so the two silhouettes fix its depth), plus
+    the next best view (``k`` = 3)."""
+    names = [c.name for c in rig.cameras]
     score = vis.mean(1)
-    order = np.argsort(-score, kind="stable")
-    return [names[i] for i in order[:k] if score[i] > 0.5]
+    cand = [i for i in np.argsort(-score, kind="stable") if score[i] > 0.6]
+    if len(cand) < 2:
+        return []
+    chord = P[-1] - P[0]
+    chord = chord / max(np.linalg.norm(chord), 1e-12)
+    q = []
+    for i in range(len(names)):
+        d = rig.cameras[i].centre - P.mean(0)
+        d /= np.linalg.norm(d)
+        d = d - (d @ chord) * chord
+        q.append(d / max(np.linalg.norm(d), 1e-12))
+    best, pair = -1.0, None
+    for a in cand:
+        for b in cand:
+            if b <= a:
+                continue
+            ang = np.arccos(np.clip(q[a] @ q[b], -1, 1))
+            val = ang * min(score[a], score[b])
+            if val > best + 1e-9:
+                best, pair = val, (a, b)
+    chosen = list(pair)
+    for i in cand:
+        if len(chosen) >= k:
+            break
+        if i not in chosen:
+            chosen.append(i)
+    return [names[i] for i in chosen]
 
 
 def _densify(P: np.ndarray, step: float) -> np.ndarray:
@@ -128,14 +163,17 @@ def _densify(P: np.ndarray, step: float) -> np.ndarray:
     return np.stack([np.interp(t, s, P[:, k]) for k in range(P.shape[1])], 1)
 
 
-def _polyline(cam, P3: np.ndarray, rng, sigma: float, closed: bool = False) -> list:
-    """A rotoscoped polyline: the curve's projection, resampled every CURVE_STEP_PX, clicked with noise."""
+def _polyline(cam, P3: np.ndarray, rng, sigma: float, closed: bool = False, min_points: int = 12) -> list:
+    """A rotoscoped polyline: the curve's projection, resampled every CURVE_STEP_PX (at least
+    ``min_points`` vertices round a closed curve), clicked with noise."""
     if closed:
         P3 = np.concatenate([P3, P3[:1]])
     dense = _densify(P3, 2e-4)
     uv, _ = cam.project(dense)
     uv = uv[np.isfinite(uv).all(1)]
-    poly = _densify(uv, CURVE_STEP_PX)
+    length = np.linalg.norm(np.diff(uv, axis=0), axis=1).sum()
+    step = min(CURVE_STEP_PX, length / min_points) if closed else CURVE_STEP_PX
+    poly = _densify(uv, max(step, 0.25))
     if closed:
         poly = poly[:-1]
     poly = poly + rng.normal(0.0, sigma, poly.shape)
@@ -155,8 +193,11 @@ def iris_circle(centre, normal, radius, n: int = IRIS_SAMPLES) -> np.ndarray:
 
 def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[TruthExpression], rig: Rig,
                      seed: int = 0, click_sigma: float = CLICK_SIGMA, neutral: str | None = None) -> Path:
-    """Write ``CAP_DIR/hand/`` from a canonical template dict (vertices = the neutral's truth) and the
-    per-expression truth the user looks at. Returns the hand folder."""
+    """Write ``CAP_DIR/hand/`` from a ``mifacerf.template/1`` dict whose positions are the neutral's truth
+    and the per-expression truth the user looks at. Returns the hand folder."""
+    from ..registration.hand import margins_from_holes
+    from ..registration.triangulate import triangulate
+
     rng = np.random.default_rng(seed + 8111)
     hand = Path(cap_dir) / "hand"
     (hand / "rotoscope").mkdir(parents=True, exist_ok=True)
@@ -164,29 +205,28 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
     by_name = {t.name: t for t in truths}
     neutral = neutral or ("neutral" if "neutral" in by_name else truths[0].name)
     tn = by_name[neutral]
+    fp = float(np.median([cam.pixel_footprint(np.linalg.norm(cam.centre)) for cam in rig.cameras]))
+    kinds = [v["kind"] for v in template["vertices"]]
+    vnames = [v.get("name", "") for v in template["vertices"]]
 
     # ---- template: every vertex placed by the user on the neutral
     T = np.asarray(tn.template_vertices, np.float64)
     vis = _visibility(rig, tn, T)
     placed = _place(rig, T, vis, rng, click_sigma)
-    tpl = dict(template)
-    tpl["vertices"] = np.round(placed, 7).tolist()
-    if tpl.get("lower_teeth_point") is not None:
-        p = np.asarray(tpl["lower_teeth_point"], np.float64)[None]
-        tpl["lower_teeth_point"] = np.round(_place(rig, p, np.zeros((len(names), 1), bool), rng,
-                                                   click_sigma)[0], 7).tolist()
-    for side, eye in (tpl.get("eyes") or {}).items():
-        if "centre" in eye:
-            c = np.asarray(eye["centre"], np.float64)[None]
-            eye["centre"] = np.round(_place(rig, c, np.zeros((len(names), 1), bool), rng, click_sigma)[0],
-                                     7).tolist()
+    tpl = json.loads(json.dumps(template))
+    for v, p in zip(tpl["vertices"], placed):
+        v["position"] = np.round(p, 7).tolist()
+    for key, t in (tpl.get("teeth") or {}).items():   # strips placed in a reference view: a small offset
+        off = rng.normal(0.0, click_sigma * fp, 3)
+        t["vertices"] = np.round(np.asarray(t["vertices"], np.float64) + off, 7).tolist()
+    for key, eye in (tpl.get("eyes") or {}).items():
+        eye["centre"] = np.round(np.asarray(eye["centre"], np.float64) + rng.normal(0.0, click_sigma * fp, 3),
+                                 7).tolist()
     tpl["made_by"] = "mifacerf synthetic user (truth of the neutral + ~1 px clicking error)"
     write_json_atomic(hand / "template.json", tpl)
 
     # ---- coarse points: clicked in every view that sees them, triangulated by the tool
-    coarse = np.asarray(template.get("coarse", []), np.int64)
-    from ..registration.triangulate import triangulate
-
+    coarse = np.asarray(template.get("coarse_points", []), np.int64)
     entries = {}
     for t in truths:
         X = np.asarray(t.template_vertices, np.float64)[coarse]
@@ -202,31 +242,33 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
             }
         entries[t.name] = e
     write_json_atomic(hand / "coarse_points.json", {
-        "format": "mifacerf.coarse_points", "version": 1, "coarse": coarse.tolist(),
+        "format": "mifacerf.coarse_points", "version": 1, "coarse_points": coarse.tolist(),
         "click_sigma_px": click_sigma, "expressions": entries})
 
-    # ---- rotoscoping: curves in the two views that see them best, marked points
-    margins = template.get("margins") or {}
-    head_points = template.get("head_points") or {}
+    # ---- rotoscoping: curves in the two views that see them best, the marked lower-teeth point
+    margins = margins_from_holes(template.get("holes") or {}, kinds)
+    head_points = {nm: i for i, nm in enumerate(vnames) if nm in ("ear_L", "ear_R", "nose_bridge")
+                   and i not in set(coarse.tolist())}
     for t in truths:
         V = np.asarray(t.template_vertices, np.float64)
         curves, points = {}, {}
         for cname, ids in margins.items():
             P = V[np.asarray(ids, np.int64)]
             v = _visibility(rig, t, P, min_cos=0.0)
-            views = _best_views(v, names)
+            views = _curve_views(rig, P, v)
             if len(views) >= 2:
                 curves[cname] = {n: _polyline(rig.camera(n), P, rng, click_sigma) for n in views}
         for side, (c, nrm, r) in (t.irises or {}).items():
             c = np.asarray(c, np.float64)
-            v = _visibility(rig, t, c[None] + 0.0005 * np.asarray(nrm)[None], min_cos=0.2)
-            views = [names[i] for i in np.flatnonzero(v[:, 0])]
+            nrm = np.asarray(nrm, np.float64)
+            circ = iris_circle(c, nrm, r)
+            pts = np.concatenate([c[None], circ]) + 0.0005 * nrm[None]
+            v = _visibility(rig, t, pts, min_cos=-2.0)
+            cosines = np.array([float(np.dot(cam.centre - c, nrm) / np.linalg.norm(cam.centre - c))
+                                for cam in rig.cameras])
+            seen = (v.mean(1) >= 0.4) & (cosines > 0.3)
+            views = [names[i] for i in np.argsort(-cosines) if seen[i]][:2]   # the most direct views
             if len(views) >= 2:
-                # the two views that look most directly at the iris
-                dots = [float(np.dot(rig.camera(n).centre - c, nrm) / np.linalg.norm(rig.camera(n).centre - c))
-                        for n in views]
-                views = [views[i] for i in np.argsort(dots)[::-1][:2]]
-                circ = iris_circle(c, nrm, r)
                 curves[f"iris_{side}"] = {n: _polyline(rig.camera(n), circ, rng, click_sigma, closed=True)
                                           for n in views}
         marks = {name: V[int(vid)] for name, vid in head_points.items()}
@@ -242,3 +284,74 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
             "format": "mifacerf.rotoscope", "version": 1, "expression": t.name, "curves": curves,
             "points": points, "eyes_look_at": t.eyes_look_at})
     return hand
+
+
+# --------------------------------------------------------------------------------- the synthetic subject
+def lower_teeth_mark(strip_vertices: np.ndarray) -> int:
+    """The strip vertex a user marks on the lower teeth: the incisal edge nearest the midline, in front."""
+    V = np.asarray(strip_vertices, np.float64)
+    top = V[:, 1] >= np.median(V[:, 1])           # incisal edges (the strip alternates edge / gum line)
+    score = np.abs(V[:, 0]) - 0.5 * V[:, 2] + np.where(top, 0.0, 1.0)
+    return int(np.argmin(score))
+
+
+def iris_of(part_transform: np.ndarray, rest_centre) -> tuple:
+    """(centre, normal, radius) of the limbus (the visible iris boundary) of an eye part whose
+    eyeball centre is ``rest_centre`` in the part's rest frame (looking along +Z there)."""
+    from . import parts as PT
+
+    beta = PT.IRIS_ANGLE
+    r = float(PT.eyeball_radius(beta))
+    R, t = part_transform[:3, :3], part_transform[:3, 3]
+    g = R @ np.array([0.0, 0.0, 1.0])
+    centre = R @ (np.asarray(rest_centre, np.float64) + np.array([0.0, 0.0, r * np.cos(beta)])) + t
+    return centre, g, r * np.sin(beta)
+
+
+def write_hand_inputs(cap_dir, subject, expressions, poses, rig: Rig, seed: int = 0,
+                      click_sigma: float = CLICK_SIGMA) -> Path:
+    """The synthetic user's hand inputs for a synthesised capture (called by ``mifacerf synth``).
+
+    ``expressions``: the subject's ``Expression(name, category, params)``; ``poses[name]`` its
+    ``Pose``. Only the neutral's truth enters the template; every expression gets clicks.
+    """
+    from . import parts as PT
+
+    template = json.loads(subject.template.to_json())
+    lower = (template.get("teeth") or {}).get("lower")
+    if lower is not None:
+        lower["mark"] = lower_teeth_mark(lower["vertices"])
+    beta = PT.IRIS_ANGLE
+    r = float(PT.eyeball_radius(beta))
+    for eye in (template.get("eyes") or {}).values():
+        eye["iris_radius"] = r * float(np.sin(beta))
+        eye["iris_depth"] = r * float(np.cos(beta))
+    template["dot_radius"] = float(getattr(subject, "dot_radius", 0.0015))
+    ctrl = list(getattr(subject, "control_names", []))
+    truths = []
+    for e in expressions:
+        pose = poses[e.name]
+        occluders = [(pose.skin_vertices, subject.skin_faces)]
+        for name in ("teeth_upper", "teeth_lower"):   # eyeballs left out: the lids rest on them
+            if name in pose.parts:
+                occluders.append((pose.parts[name].vertices, pose.parts[name].faces))
+        Vs, Fs, off = [], [], 0
+        for V, F in occluders:
+            Vs.append(np.asarray(V, np.float64))
+            Fs.append(np.asarray(F, np.int64) + off)
+            off += len(V)
+        irises = {}
+        for name, side in (("eye_left", "L"), ("eye_right", "R")):
+            if name in pose.parts and pose.parts[name].transform is not None:
+                irises[side] = iris_of(pose.parts[name].transform, subject.eye_centres[name])
+        ltp = None
+        if lower is not None and "teeth_lower" in pose.parts:
+            T = pose.parts["teeth_lower"].transform
+            p = np.asarray(subject.template.teeth["lower"]["vertices"], np.float64)[lower["mark"]]
+            ltp = T[:3, :3] @ p + T[:3, 3]
+        gaze = [abs(float(e.params[ctrl.index(k)])) for k in ("gaze_yaw", "gaze_pitch") if k in ctrl]
+        look = "forward" if gaze and max(gaze) < 1e-6 else None
+        truths.append(TruthExpression(e.name, np.asarray(pose.template_vertices, np.float64),
+                                      (np.concatenate(Vs), np.concatenate(Fs)), irises, ltp, look))
+    neutral = next((e.name for e in expressions if e.category == "neutral"), expressions[0].name)
+    return make_hand_inputs(cap_dir, template, truths, rig, seed=seed, click_sigma=click_sigma, neutral=neutral)

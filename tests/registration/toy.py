@@ -130,8 +130,9 @@ def template_dict():
             k = int(np.argmin((az[:len(DOTS)] - a) ** 2 + (el[:len(DOTS)] - e) ** 2))
             if k not in coarse:
                 coarse.append(k)
-    return {"format": "mifacerf.template", "version": 1, "n_vertices": len(ids), "vertices": V.tolist(),
-            "kinds": kinds, "triangles": tri.tolist(), "coarse": coarse, "regions": {},
+    return {"schema": "mifacerf.template/1", "subject": "toy",
+            "vertices": [{"kind": k, "name": f"v{i}", "position": p.tolist()} for i, (k, p) in enumerate(zip(kinds, V))],
+            "triangles": tri.tolist(), "coarse_points": coarse, "regions": {},
             "dot_radius": DOT_RADIUS}, ids
 
 

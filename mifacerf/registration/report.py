@@ -1,0 +1,188 @@
+"""Evaluation of a registration against the synthetic subject's ground truth (never used by registration).
+
+``evaluate(capture, truth, registration)`` compares, per expression:
+
+* **fiducials** — the fraction registered (status 1), and the median / 95th-percentile 3-D
+  error of the registered ones, in metres and in *pixel footprints* (the error divided by the
+  size of one pixel at the dot's depth, averaged over the cameras that see it);
+* **residual dot visibility** — the mean dot-filter response (dot-strength units: 1 = a
+  typical dot) at the true dot positions visible in each view, in the diffuse proxy of the
+  captured images (*before*) and of the dot-free images (*after*, the registration's patches
+  applied);
+* **lips and eyelids** — the 3-D error of the margin vertices; **head pose** — rotation
+  (degrees) and translation errors; **teeth** — error of the lower teeth's marked point;
+  **eyes** — eye-centre error (where the truth has eye transforms).
+
+``python -m mifacerf.registration.report OUT [--registration DIR] [--json FILE]`` prints the table
+(``OUT`` a ``mifacerf synth`` output folder with ``capture/`` and ``truth/``).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import Capture
+from ..registered import Registration
+from .dots import DotFilter, peak_near
+from .hand import Template
+from .proxies import cone_weights, proxies_for
+from .visibility import Visibility
+
+
+def _stats(x):
+    x = np.asarray(x, np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return None, None
+    return float(np.median(x)), float(np.percentile(x, 95))
+
+
+def footprints(cams, X, visible) -> np.ndarray:
+    """(N,) metres per pixel at each point's depth, averaged over the cameras in ``visible`` (C, N)."""
+    fp = np.stack([cam.world_to_camera(X)[:, 2] / np.sqrt(cam.K[0, 0] * cam.K[1, 1]) for cam in cams])
+    w = visible.astype(float)
+    w[:, w.sum(0) == 0] = 1.0
+    return (fp * w).sum(0) / w.sum(0)
+
+
+def dotfree_diffuse(reg: Registration, cap: Capture, name: str, cam, diffuse: np.ndarray, cone_deg: float):
+    """The diffuse proxy of the dot-free field: the patched pixels replaced by their proxy values."""
+    patch = reg.dotfree_patch(name, cam.name)
+    out = diffuse.copy()
+    if patch is None:
+        return out
+    pixels, values = patch
+    w = cone_weights(cap.rig.lights, cam, cone_deg).astype(np.float32)
+    out[pixels[:, 0], pixels[:, 1]] = np.tensordot(w, values.astype(np.float32), axes=(0, 0))
+    return out
+
+
+def evaluate(capture, truth, registration=None, expressions=None, dots_residual: bool = True) -> dict:
+    """Per-expression metrics (see the module docstring) and their summary."""
+    cap = capture if isinstance(capture, Capture) else Capture(capture)
+    reg = Registration(registration or cap.root / "registration", capture=cap)
+    tpl = Template.from_dict(reg.template)
+    truth = Path(truth)
+    cams = cap.rig.cameras
+    dots = tpl.dot_ids
+    vis = Visibility(tpl.triangles, tpl.n_vertices, tol=5e-4)
+    filt = DotFilter.from_dict(reg.meta["dot_filter"]) if "dot_filter" in reg.meta else None
+    cone = float(reg.meta.get("options", {}).get("cone_deg", 60.0))
+    rows = {}
+    neutral_truth = None
+    for name in expressions or reg.expression_names:
+        r = reg.expression(name)
+        z = np.load(truth / "expressions" / f"{name}.npz")
+        T = np.asarray(z["template_vertices"], np.float64)
+        if neutral_truth is None:
+            nz = np.load(truth / "expressions" / f"{reg.expression_names[0]}.npz")
+            neutral_truth = np.asarray(nz["template_vertices"], np.float64)
+        tvis = vis(T, cams, min_cos=0.2)
+        err = np.linalg.norm(r.vertices - T, axis=1)
+        fp = footprints(cams, T, tvis)
+        ok = r.status[dots] == 1
+        e_m, e_px = err[dots][ok], (err / fp)[dots][ok]
+        row = {"registered_fraction": float(ok.mean()), "n_dots": int(len(dots)),
+               "median_m": _stats(e_m)[0], "p95_m": _stats(e_m)[1],
+               "median_px": _stats(e_px)[0], "p95_px": _stats(e_px)[1],
+               "max_px": float(e_px.max()) if e_px.size else None,
+               "unregistered_median_px": _stats((err / fp)[dots][~ok])[0],
+               "seen_by_2plus_views": float((tvis[:, dots].sum(0) >= 2).mean())}
+        margins = tpl.margin_ids()
+        if margins.size:
+            row["margins_median_px"], row["margins_p95_px"] = _stats((err / fp)[margins])
+        # head pose against the truth head transform (neutral -> expression)
+        if "part_teeth_upper" in z.files:
+            Th = z["part_teeth_upper"]
+            dR = r.head_pose[:3, :3].T @ Th[:3, :3]
+            row["head_rotation_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+            c = T[tpl.dot_ids].mean(0)
+            row["head_translation_m"] = float(np.linalg.norm(
+                (r.head_pose[:3, :3] @ c + r.head_pose[:3, 3]) - (Th[:3, :3] @ c + Th[:3, 3])))
+        if "part_teeth_lower" in z.files and tpl.lower_teeth_point is not None and np.isfinite(r.teeth).all():
+            from .eyes_teeth import apply
+
+            p_rest = tpl.lower_teeth_point  # the user's template strip: compare the transforms on it
+            Tl = z["part_teeth_lower"]
+            row["lower_teeth_m"] = float(np.linalg.norm(apply(r.teeth[1], p_rest[None])[0]
+                                                        - apply(Tl, p_rest[None])[0]))
+        if "part_eye_left" in z.files and np.isfinite(r.eye_centres).all():
+            from ..synthetic import head as H
+
+            ce = []
+            for i, (part, sgn) in enumerate((("part_eye_left", 1.0), ("part_eye_right", -1.0))):
+                Te = z[part]
+                c_rest = H.EYE_CENTRE * np.array([sgn, 1, 1])
+                ce.append(np.linalg.norm(r.eye_centres[i] - (Te[:3, :3] @ c_rest + Te[:3, 3])))
+            row["eye_centre_m"] = float(np.max(ce))
+        if dots_residual and filt is not None:
+            before, after = [], []
+            for c, cam in enumerate(cams):
+                ids = dots[tvis[c, dots]]
+                if ids.size == 0:
+                    continue
+                uv, _ = cam.project(T[ids])
+                d0 = proxies_for(cap, name, cam.name, cone_deg=cone).diffuse
+                d1 = dotfree_diffuse(reg, cap, name, cam, d0, cone)
+                s = filt.scales.get(cam.name, 1.0)
+                before.append(peak_near(np.maximum(filt.response(d0), 0) / s, uv, 1.0)[1])
+                after.append(peak_near(np.maximum(filt.response(d1), 0) / s, uv, 1.0)[1])
+            if before:
+                row["dot_response_before"] = float(np.mean(np.concatenate(before)))
+                row["dot_response_after"] = float(np.mean(np.concatenate(after)))
+        rows[name] = row
+    frac = [r["registered_fraction"] for r in rows.values()]
+    summary = {
+        "expressions": len(rows),
+        "min_registered_fraction": float(np.min(frac)) if frac else None,
+        "mean_registered_fraction": float(np.mean(frac)) if frac else None,
+        "worst_median_px": max((r["median_px"] or 0) for r in rows.values()) if rows else None,
+        "worst_p95_px": max((r["p95_px"] or 0) for r in rows.values()) if rows else None,
+    }
+    if rows and all("dot_response_before" in r for r in rows.values()):
+        summary["dot_response_before"] = float(np.mean([r["dot_response_before"] for r in rows.values()]))
+        summary["dot_response_after"] = float(np.mean([r["dot_response_after"] for r in rows.values()]))
+    return {"per_expression": rows, "summary": summary}
+
+
+def format_table(result: dict) -> str:
+    """A Markdown table of :func:`evaluate`'s result."""
+    head = ("| expression | registered | median err (mm / px) | p95 err (mm / px) | dot response before → after "
+            "| lips/lids median px | head rot (deg) |")
+    lines = [head, "|" + "---|" * 7]
+
+    def f(x, k=2):
+        return "–" if x is None else f"{x:.{k}f}"
+
+    for name, r in result["per_expression"].items():
+        lines.append(f"| {name} | {100 * r['registered_fraction']:.1f}% | {f(r['median_m'] and r['median_m'] * 1e3)} / "
+                     f"{f(r['median_px'])} | {f(r['p95_m'] and r['p95_m'] * 1e3)} / {f(r['p95_px'])} | "
+                     f"{f(r.get('dot_response_before'), 3)} → {f(r.get('dot_response_after'), 3)} | "
+                     f"{f(r.get('margins_median_px'))} | {f(r.get('head_rotation_deg'))} |")
+    s = result["summary"]
+    lines.append("")
+    lines.append(f"min registered {100 * (s['min_registered_fraction'] or 0):.1f}%, worst median {f(s['worst_median_px'])} px, "
+                 f"worst p95 {f(s['worst_p95_px'])} px; dot response {f(s.get('dot_response_before'), 3)} → "
+                 f"{f(s.get('dot_response_after'), 3)}")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Evaluate a registration of a synthetic capture against its truth")
+    ap.add_argument("out", help="a 'mifacerf synth' output folder (with capture/ and truth/)")
+    ap.add_argument("--registration", default=None)
+    ap.add_argument("--json", default=None, help="write the full result here")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    res = evaluate(out / "capture", out / "truth", a.registration)
+    print(format_table(res))
+    if a.json:
+        Path(a.json).write_text(json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
