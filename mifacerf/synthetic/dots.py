@@ -64,8 +64,9 @@ def allowed(P, N):
     return ok
 
 
-def choose_dots(neutral, faces, n_dots=N_DOTS, seed=1234, n_candidates=60000):
-    """Dots on the neutral skin: ``(tri, bary, names)``; ``names[i]`` is a landmark name or ''."""
+def choose_dots(neutral, faces, n_dots=N_DOTS, seed=1234, n_candidates=60000, avoid=None, avoid_dist=0.006):
+    """Dots on the neutral skin: ``(tri, bary, names)``; ``names[i]`` is a landmark name or ''.
+    ``avoid``: (k, 3) points (other template vertices) that dots keep ``avoid_dist`` from."""
     tri, bary = sample_surface(neutral, faces, n_candidates, seed)
     P = np.einsum("nk,nkj->nj", bary, neutral[faces[tri]])
     Nv = vertex_normals(neutral, faces)
@@ -76,6 +77,9 @@ def choose_dots(neutral, faces, n_dots=N_DOTS, seed=1234, n_candidates=60000):
     if len(lips):
         d, _ = cKDTree(lips).query(P, k=1)
         ok &= d > 0.0030 + DOT_RADIUS
+    if avoid is not None and len(avoid):
+        d, _ = cKDTree(np.asarray(avoid)).query(P, k=1)
+        ok &= d > avoid_dist
     tri, bary, P = tri[ok], bary[ok], P[ok]
     # farthest-point sampling seeded with the landmarks
     chosen, names = [], []
@@ -86,6 +90,8 @@ def choose_dots(neutral, faces, n_dots=N_DOTS, seed=1234, n_candidates=60000):
         chosen.append(int(np.argmin(d)))
         names.append(name)
     dist = np.full(len(P), np.inf)
+    if avoid is not None and len(avoid):
+        dist = np.minimum(dist, cKDTree(np.asarray(avoid)).query(P, k=1)[0])
     for c in chosen:
         dist = np.minimum(dist, np.linalg.norm(P - P[c], axis=1))
     while len(chosen) < n_dots:

@@ -46,8 +46,8 @@ class Control(NamedTuple):
 CONTROLS: tuple[Control, ...] = (
     Control("brow_raise_L", 0.0, 1.0, 0.0, "raise the left brow (~7 mm); compresses the forehead"),
     Control("brow_raise_R", 0.0, 1.0, 0.0, "raise the right brow (~7 mm); compresses the forehead"),
-    Control("brow_lower_L", 0.0, 1.0, 0.0, "lower the left brow (~4.5 mm) towards the eye"),
-    Control("brow_lower_R", 0.0, 1.0, 0.0, "lower the right brow (~4.5 mm) towards the eye"),
+    Control("brow_lower_L", 0.0, 1.0, 0.0, "lower the left brow (~3 mm) towards the eye"),
+    Control("brow_lower_R", 0.0, 1.0, 0.0, "lower the right brow (~3 mm) towards the eye"),
     Control("frown", 0.0, 1.0, 0.0, "pull the inner brows together and down (corrugator): glabella lines"),
     Control("smile_L", 0.0, 1.0, 0.0, "pull the left mouth corner up and back, raise the cheek"),
     Control("smile_R", 0.0, 1.0, 0.0, "pull the right mouth corner up and back, raise the cheek"),
@@ -86,8 +86,8 @@ LINEAR_CONTROLS = (
 )
 
 # lid opening angles (rad) at the middle of the margin for the neutral face
-LID_UP_NEUTRAL = 0.50
-LID_LO_NEUTRAL = 0.29
+LID_UP_NEUTRAL = 0.45
+LID_LO_NEUTRAL = 0.28
 
 
 def default_params() -> np.ndarray:
@@ -192,7 +192,7 @@ class SkinRig:
         on_row = row == ms.row
         Pm = np.clip(1.0 - (x / hw) ** 2, 0.0, None) ** 0.6
         w1 = 0.003 + 0.02 * smoothstep(hw, 2.2 * hw, ax)
-        M = 1.0 - (1.0 - Pm) * np.exp(-np.abs(eta) / w1)
+        M = 1.0 - (1.0 - Pm) * np.clip(1.0 - np.abs(eta) / (3.0 * w1), 0.0, 1.0) ** 2   # compact
         M = np.where(on_row & (side == 0), 0.0, M)
         self.S_up = 0.5 + 0.5 * side * M
         self.S_lo = 1.0 - self.S_up
@@ -215,9 +215,10 @@ class SkinRig:
             d[:, 2] = 0.0010 * reg * h
             B[f"brow_raise_{sfx}"] = d
             # lower: peaks at the brow, fades to the slit and up the forehead
-            h2 = smoothstep(H.Y_EYE + 0.002, 0.022, y) * (1.0 - smoothstep(0.026, 0.065, y))
+            # (starts above the shut-lid sphere: the lid itself is moved by the lid rotation)
+            h2 = smoothstep(0.015, 0.030, y) * (1.0 - smoothstep(0.034, 0.070, y))
             d = np.zeros((n, 3))
-            d[:, 1] = -0.0045 * reg * h2
+            d[:, 1] = -0.0040 * reg * h2
             d[:, 0] = -sgn * 0.0012 * reg * h2
             d[:, 2] = 0.0008 * reg * h2
             B[f"brow_lower_{sfx}"] = d
@@ -322,8 +323,11 @@ class SkinRig:
 
         for sgn, sfx in ((1.0, "L"), (-1.0, "R")):
             d = np.zeros((n, 3))
-            g = gauss(np.sqrt(((x - sgn * 0.040) / 0.016) ** 2 + ((y + 0.012) / 0.015) ** 2)) * front
-            d[:, 1] = 0.0040 * g
+            g = gauss(np.sqrt(((x - sgn * 0.040) / 0.016) ** 2 + ((y + 0.014) / 0.015) ** 2)) * front
+            # the lower lid itself rises by the lid rotation (see lid_angles); fade the push below it
+            ce_ = H.EYE_CENTRE * np.array([sgn, 1, 1])
+            g = g * smoothstep(H.LID_RADIUS + 0.001, H.LID_RADIUS + 0.009, np.linalg.norm(V0 - ce_, axis=1))
+            d[:, 1] = 0.0036 * g
             d[:, 2] = 0.0012 * g
             # circumferential squeeze lateral to the eye (orbicularis): crow's feet
             lat = smoothstep(0.040, 0.050, sgn * x) * gauss((sgn * x - 0.056) / 0.012)
@@ -380,9 +384,13 @@ class SkinRig:
             w_lo = P_lo * g_lo * near
             curl = np.exp(-(eta_e / 0.0010) ** 2) * near * (eside != 0)
             idx = np.nonzero((w_up > 1e-6) | (w_lo > 1e-6) | (curl * np.maximum(P_up, P_lo) > 1e-6))[0]
+            # skin lying on the lid sphere is kept outside it when other fields push it inwards
+            rho = np.linalg.norm(rel, axis=1)
+            w_col = smoothstep(H.LID_RADIUS + 0.006, H.LID_RADIUS + 0.0015, rho) * (rel[:, 2] > -0.004)
+            cidx = np.nonzero(w_col > 1e-6)[0]
             self.eye[name] = dict(centre=ce, idx=idx, w_up=w_up[idx], w_lo=w_lo[idx],
                                   curl=curl[idx], P_up=P_up[idx], P_lo=P_lo[idx], side=eside[idx],
-                                  sgn=sgn, slit=es)
+                                  sgn=sgn, slit=es, col_idx=cidx, col_w=w_col[cidx])
 
         # ---- jaw -----------------------------------------------------------------------------
         q = y + 0.46 * (z - 0.06) + 0.12          # > 0 above the line under the jaw
@@ -395,7 +403,7 @@ class SkinRig:
         self.slit_x_up = V0[ms.upper, 0]
 
         # ---- head pose -----------------------------------------------------------------------
-        self.w_head = smoothstep(-0.105, -0.012, q)
+        self.w_head = smoothstep(-0.105, -0.012, q) * smoothstep(H.NECK_BASE_Y + 0.002, H.NECK_BASE_Y + 0.04, y)
         self.w_head[grid.cap_centre] = 0.0
 
     # ------------------------------------------------------------------------------------------
@@ -407,7 +415,7 @@ class SkinRig:
         sq = g(f"cheek_raise_{s}")
         gp = g("gaze_pitch")
         up = max(0.0, LID_UP_NEUTRAL + 0.25 * wide - 0.06 * sq + 0.55 * gp) * (1.0 - blink)
-        lo = max(0.0, LID_LO_NEUTRAL + 0.08 * wide - 0.14 * sq - 0.35 * gp) * (1.0 - blink)
+        lo = max(0.0, LID_LO_NEUTRAL + 0.08 * wide - 0.17 * sq - 0.35 * gp) * (1.0 - blink)
         return up, lo
 
     def deform(self, params: np.ndarray) -> RigState:
@@ -416,10 +424,27 @@ class SkinRig:
         # 1. linear fields
         w = p[self.linear_index]
         if np.any(w != 0):
-            V[self.basis_support] += (w @ self.basis_sub).reshape(-1, 3)
+            D = np.zeros_like(V)
+            D[self.basis_support] = (w @ self.basis_sub).reshape(-1, 3)
+            # skin on the lid spheres slides over them: drop the inward radial part
+            for e in self.eye.values():
+                ci = e["col_idx"]
+                r = self.rest[ci] - e["centre"]
+                r /= np.linalg.norm(r, axis=1, keepdims=True)
+                dr = np.einsum("ij,ij->i", D[ci], r)
+                D[ci] -= (e["col_w"] * np.minimum(dr, 0.0))[:, None] * r
+            V += D
 
-        # 2. eyelids
+        # 2. eyelids (first keep the lid skin outside the lid sphere: a soft collision)
         lid = {}
+        for name, e in self.eye.items():
+            ci = e["col_idx"]
+            Q = V[ci] - e["centre"]
+            r = np.linalg.norm(Q, axis=1)
+            k = 0.0003
+            push = k * np.logaddexp(0.0, (H.LID_RADIUS - r) / k) - k * np.log(2.0)
+            push = np.maximum(push, 0.0) * e["col_w"]
+            V[ci] = e["centre"] + Q * ((r + push) / np.maximum(r, 1e-12))[:, None]
         for name, e in self.eye.items():
             up, lo = self.lid_angles(p, name)
             lid[name] = (up, lo)

@@ -58,6 +58,11 @@ def smin(a, b, k):
     return b + (a - b) * h - k * h * (1.0 - h)
 
 
+def smoothstep_np(e0, e1, x):
+    t = np.clip((x - e0) / (e1 - e0), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def smax(a, b, k):
     """Smooth maximum (intersection / subtraction with ``-b``)."""
     return -smin(-a, -b, k)
@@ -135,9 +140,9 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
     fore = sd_ellipsoid(p, (0.0, 0.040, 0.002), (0.0640, 0.0520, 0.0880))
     d = smin(d, fore, 0.020)
     # the lower face: a jaw mass that narrows towards the chin
-    taper = 1.0 + 0.45 * np.clip((y + 0.040) / 0.070, -1.0, 0.5)
+    taper = 1.0 + 0.38 * np.clip((y + 0.040) / 0.070, -1.0, 0.5)
     pj = np.stack([x / taper, y, z], axis=-1)
-    jaw = sd_ellipsoid(pj, (0.0, -0.040, 0.014), (0.0610, 0.0680, 0.0750)) * np.minimum(taper, 1.0)
+    jaw = sd_ellipsoid(pj, (0.0, -0.040, 0.014), (0.0630, 0.0680, 0.0750)) * np.minimum(taper, 1.0)
     d = smin(d, jaw, 0.020)
     # maxilla / mouth mound
     pb = np.stack([x, y, z + 14.0 * x * x], axis=-1)  # bent along the dental arch
@@ -147,12 +152,13 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
     chin = sd_ellipsoid(p, (0.0, -0.0945, 0.068), (0.0195, 0.0140, 0.0195))
     d = smin(d, chin, 0.012)
     # jaw angles
-    gon = sd_ellipsoid(ps, (0.051, -0.070, -0.012), (0.013, 0.020, 0.024))
-    d = smin(d, gon, 0.018)
+    gon = sd_ellipsoid(ps, (0.051, -0.068, -0.010), (0.011, 0.018, 0.022))
+    d = smin(d, gon, 0.022)
     # neck: an elliptic cylinder leaning slightly forwards at the bottom
     zc = -0.020 + 0.10 * np.clip(-(y + 0.10), 0.0, None)
-    rn = np.sqrt((x / 0.054) ** 2 + ((z - zc) / 0.057) ** 2)
-    neck = (rn - 1.0) * 0.055
+    flare = 1.0 + 0.22 * smoothstep_np(-0.165, -0.225, y)
+    rn = np.sqrt((x / (0.056 * flare)) ** 2 + ((z - zc) / (0.059 * flare)) ** 2)
+    neck = (rn - 1.0) * 0.057
     neck = smax(neck, y + 0.03, 0.02)  # ends inside the head
     d = smin(d, neck, 0.022)
     # trapezius slope at the neck base (a hint of shoulders)
@@ -160,10 +166,10 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
     d = smin(d, trap, 0.025)
 
     # cheekbones and cheeks
-    d = _local_union(d, ps, (0.047, -0.011, 0.049), 0.022, 0.012,
-                     lambda q: sd_ellipsoid(q, (0.047, -0.011, 0.049), (0.020, 0.011, 0.022), rot_y(0.5)))
-    d = _local_union(d, ps, (0.034, -0.034, 0.062), 0.022, 0.014,
-                     lambda q: sd_ellipsoid(q, (0.034, -0.034, 0.062), (0.021, 0.022, 0.020)))
+    d = _local_union(d, ps, (0.050, -0.011, 0.047), 0.022, 0.016,
+                     lambda q: sd_ellipsoid(q, (0.050, -0.011, 0.047), (0.020, 0.011, 0.022), rot_y(0.5)))
+    d = _local_union(d, ps, (0.036, -0.032, 0.058), 0.025, 0.020,
+                     lambda q: sd_ellipsoid(q, (0.036, -0.032, 0.058), (0.025, 0.025, 0.022)))
     # temples (slight hollow)
     d = _local_union(d, ps, (0.084, 0.022, 0.030), 0.020, 0.012,
                      lambda q: sd_ellipsoid(q, (0.084, 0.022, 0.030), (0.016, 0.020, 0.020)), carve=True)

@@ -37,7 +37,7 @@ from . import parts as PT
 from .dots import DOT_RADIUS, choose_dots
 from .expressions import CONTROL_INDEX, CONTROL_NAMES, CONTROLS, SkinRig, apply, default_params
 from .presets import Expression, presets as _presets
-from .textures import SkinTextures, build_atlas
+from .textures import SkinTextures, build_atlas, rasterize
 
 RIGID_PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower")
 PART_NAMES = ("skin",) + RIGID_PARTS + ("mouth_interior",)
@@ -127,7 +127,10 @@ class Subject:
         st0 = self.rig.deform(default_params())
         self.neutral_skin = st0.head_frame_vertices
         self.dot_radius = DOT_RADIUS
-        self.dot_tri, self.dot_bary, self.dot_names = choose_dots(self.neutral_skin, self.skin_faces)
+        from .template import marked_vertices
+
+        marks = self.neutral_skin[[v for _, _, v in marked_vertices(self.neutral_skin)]]
+        self.dot_tri, self.dot_bary, self.dot_names = choose_dots(self.neutral_skin, self.skin_faces, avoid=marks)
         self.dots_neutral = barycentric_points(self.neutral_skin, self.skin_faces, self.dot_tri, self.dot_bary)
 
         # atlas (cached) and textures (static part cached)
@@ -138,9 +141,14 @@ class Subject:
         self.skin_uv = at["uv"]
         self.skin_uv_faces = at["uv_faces"]
         self.skin_uv_vertex = at["uv_vertex"]
+        akey = cache.key("raster", res, self.skin_faces.shape, float(self.skin_rest.sum()))
+        rast = cache.cached(akey, lambda: dict(zip(("tri", "bary", "inside"),
+                                                    rasterize(at["uv"], at["uv_faces"], res))))
+        raster = (rast["tri"], rast["bary"].astype(np.float32), rast["inside"])
         static = cache.load(cache.key("skin-static", res, float(self.dots_neutral.sum())))
         self.tex = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
-                                static=None if static is None else {k: v.astype(np.float32) for k, v in static.items()})
+                                static=None if static is None else {k: v.astype(np.float32) for k, v in static.items()},
+                                raster=raster)
         if static is None:
             try:
                 cache.save(cache.key("skin-static", res, float(self.dots_neutral.sum())), **self.tex.static_arrays())
@@ -157,18 +165,19 @@ class Subject:
     def _face_region(self) -> np.ndarray:
         """(F,) bool: skin triangles inside the area the template mesh covers (lips and lid margins
         included)."""
+        import matplotlib.tri as mtri
+
         from .template import SkinChart, _point_in_poly
 
         tpl = self.template
         chart = SkinChart(self.grid, self.grid.vertices)
         F = self.skin_faces
         C = chart.points(F, np.arange(len(F)), np.full((len(F), 3), 1.0 / 3.0))
-        dl, keep = tpl.extra["delaunay"], tpl.extra["delaunay_keep"]
-        s = dl.find_simplex(C)
-        inside = (s >= 0) & keep[np.maximum(s, 0)]
         X = tpl.extra["chart"]
+        tri = mtri.Triangulation(X[:, 0], X[:, 1], np.asarray(tpl.triangles))
+        inside = tri.get_trifinder()(C[:, 0], C[:, 1]) >= 0
         for loop in tpl.holes.values():
-            inside |= (s >= 0) & _point_in_poly(C, X[np.asarray(loop)])
+            inside |= _point_in_poly(C, X[np.asarray(loop)])
         return inside
 
     # ------------------------------------------------------------------------------------------

@@ -258,15 +258,19 @@ def delaunay_with_holes(X, holes, peel_ratio=2.6, max_edge=None):
 # the procedural subject's template
 # --------------------------------------------------------------------------------------------
 def _vertex_binding(F, vids):
-    """(tri, bary) for skin vertices: any incident face with a one-hot barycentric."""
-    first = {}
-    for f, tri in enumerate(F):
-        for k in range(3):
-            first.setdefault(int(tri[k]), (f, k))
-    tri = np.array([first[int(v)][0] for v in vids], int)
+    """(tri, bary) for skin vertices: an incident face with a one-hot barycentric."""
+    flat = np.asarray(F).ravel()
+    order = np.argsort(flat, kind="stable")
+    sv = flat[order]
+    vids = np.asarray(vids, int)
+    pos = np.searchsorted(sv, vids)
+    if np.any(pos >= len(sv)) or np.any(sv[np.minimum(pos, len(sv) - 1)] != vids):
+        raise ValueError("vertex not used by any face")
+    corner = order[pos]
+    tri = corner // 3
     bary = np.zeros((len(vids), 3))
-    bary[np.arange(len(vids)), [first[int(v)][1] for v in vids]] = 1.0
-    return tri, bary
+    bary[np.arange(len(vids)), corner % 3] = 1.0
+    return tri.astype(int), bary
 
 
 class SkinChart:
@@ -294,6 +298,88 @@ class SkinChart:
     def points(self, F, tri, bary):
         rc = np.einsum("nk,nkj->nj", bary, self.grid.vertex_rc[F[tri]])
         return self.rc_to_xy(rc)
+
+
+MARKED_TARGETS = (
+    ("nostril", "nostril_L", (0.0068, -0.0460, 0.0975)),
+    ("nostril", "alar_base_L", (0.0190, -0.0420, 0.0840)),
+    ("nostril", "nostril_R", (-0.0068, -0.0460, 0.0975)),
+    ("nostril", "alar_base_R", (-0.0190, -0.0420, 0.0840)),
+    ("ear", "ear_L", (0.0820, -0.0060, -0.0040)),
+    ("ear", "ear_R", (-0.0820, -0.0060, -0.0040)),
+    ("nose_bridge", "nose_bridge", (0.0, 0.0070, 0.0900)),
+)
+
+
+def marked_vertices(neutral):
+    """(kind, name, skin vertex id) of the template's marked non-dot points (nearest neutral vertex
+    to anatomical targets: round the nostrils, one per ear, the nose bridge)."""
+    out = []
+    for kind, name, tgt in MARKED_TARGETS:
+        out.append((kind, name, int(np.argmin(np.linalg.norm(neutral - np.asarray(tgt), axis=1)))))
+    return out
+
+
+def flip_improve(P3, X2, T, max_passes=30):
+    """Intrinsic-Delaunay edge flips on 3-D positions: flip an interior edge when the two angles
+    opposite it sum to more than π, if the flipped pair is valid (positive area in the 2-D chart
+    ``X2``, no fold in 3-D). Boundary (hole and outer) edges never flip; orientation is kept."""
+    T = np.array(T, int)
+    for _ in range(max_passes):
+        edges = {}
+        for t, (a, b, c) in enumerate(T):
+            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
+                edges[(u, v)] = (t, w)
+        flipped = 0
+        done = set()
+        for (u, v), (t1, c) in list(edges.items()):
+            if (v, u) not in edges or (min(u, v), max(u, v)) in done:
+                continue
+            t2, d = edges[(v, u)]
+            if t1 == t2:
+                continue
+            done.add((min(u, v), max(u, v)))
+            if set(T[t1]) != {u, v, c} or set(T[t2]) != {u, v, d}:
+                continue
+
+            def ang(p, q, r):
+                a1, b1 = P3[q] - p, P3[r] - p
+                return np.arccos(np.clip(a1 @ b1 / (np.linalg.norm(a1) * np.linalg.norm(b1) + 1e-30), -1, 1))
+
+            if ang(P3[c], u, v) + ang(P3[d], u, v) <= np.pi + 1e-9:
+                continue
+            n1 = (u, d, c)   # quad u-d-v-c, CCW
+            n2 = (d, v, c)
+
+            def area2(tri):
+                p = X2[list(tri)]
+                return (p[1, 0] - p[0, 0]) * (p[2, 1] - p[0, 1]) - (p[1, 1] - p[0, 1]) * (p[2, 0] - p[0, 0])
+
+            if area2(n1) <= 0 or area2(n2) <= 0:
+                continue
+            nn1 = np.cross(P3[n1[1]] - P3[n1[0]], P3[n1[2]] - P3[n1[0]])
+            nn2 = np.cross(P3[n2[1]] - P3[n2[0]], P3[n2[2]] - P3[n2[0]])
+            if nn1 @ nn2 <= 0:
+                continue
+            T[t1] = n1
+            T[t2] = n2
+            flipped += 1
+            # the edge map is stale now: restart the pass
+            break
+        if not flipped:
+            # no flip in a full sweep
+            break
+    return T
+
+
+def improve(P3, X2, T, passes=400):
+    """Repeat single flips until none applies (small meshes only)."""
+    for _ in range(passes):
+        T2 = flip_improve(P3, X2, T, max_passes=1)
+        if np.array_equal(T2, T):
+            break
+        T = T2
+    return T
 
 
 def build_template(subj) -> Template:
@@ -353,24 +439,10 @@ def build_template(subj) -> Template:
         holes[eye] = [ids[es.corners[0]]] + [ids[int(v)] for v in es.upper[sel]] + \
                      [ids[es.corners[1]]] + [ids[int(v)] for v in es.lower[sel][::-1]]
 
-    # nostrils, ears, nose bridge: nearest neutral skin vertices to marked targets
-    def nearest_vertex(target, normal_hint=None):
-        d = np.linalg.norm(Vn - np.asarray(target), axis=1)
-        return int(np.argmin(d))
-
-    for sgn, sfx in ((1.0, "L"), (-1.0, "R")):
-        for nm, tgt in ((f"nostril_{sfx}", (sgn * 0.0068, -0.0460, 0.0975)),
-                        (f"alar_base_{sfx}", (sgn * 0.0190, -0.0420, 0.0840))):
-            v = nearest_vertex(tgt)
-            t, b = _vertex_binding(F, [v])
-            add("nostril", nm, t[0], b[0])
-    for sgn, sfx in ((1.0, "L"), (-1.0, "R")):
-        v = nearest_vertex((sgn * 0.0820, -0.0060, -0.0040))
+    # nostrils, ears, nose bridge: marked skin vertices
+    for kind, nm, v in marked_vertices(Vn):
         t, b = _vertex_binding(F, [v])
-        add("ear", f"ear_{sfx}", t[0], b[0])
-    v = nearest_vertex((0.0, 0.0070, 0.0900))
-    t, b = _vertex_binding(F, [v])
-    add("nose_bridge", "nose_bridge", t[0], b[0])
+        add(kind, nm, t[0], b[0])
 
     tri = np.array(tri_l, int)
     bary = np.array(bary_l)
@@ -379,6 +451,8 @@ def build_template(subj) -> Template:
     for i, off in opening.items():
         X[i, 1] += off
     T, keep, dl = delaunay_with_holes(X, list(holes.values()))
+    T = improve(neutral, X, T)
+    T = _peel3d(neutral, T, holes)
 
     # coarse points
     by_name = {n: i for i, n in enumerate(names) if n}
@@ -397,6 +471,25 @@ def build_template(subj) -> Template:
                    ["skin"] * len(kinds), tri, bary, "procedural",
                    extra={"skin_faces": F, "chart": X, "delaunay": dl, "delaunay_keep": keep})
     return tpl
+
+
+def _peel3d(P3, T, holes, min_angle=12.0, max_angle=145.0):
+    """Drop bad triangles on the outer boundary (3-D angles), repeatedly."""
+    hole_verts = set(int(i) for loop in holes.values() for i in loop)
+    T = np.asarray(T)
+    for _ in range(20):
+        bt, be = _boundary_edges(T)
+        mn, mx = triangle_quality(P3, T)
+        bad = set()
+        for t, e in zip(bt, be):
+            if int(e[0]) in hole_verts and int(e[1]) in hole_verts:
+                continue
+            if mn[t] < min_angle or mx[t] > max_angle:
+                bad.add(int(t))
+        if not bad:
+            break
+        T = np.delete(T, sorted(bad), axis=0)
+    return T
 
 
 def assign_regions(P, kinds) -> dict:

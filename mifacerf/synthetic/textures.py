@@ -121,28 +121,47 @@ def _barycentric(tri2d, p):
 # --------------------------------------------------------------------------------------------
 # procedural noise on 3-D positions (seamless across charts)
 # --------------------------------------------------------------------------------------------
-def _hash3(i, seed):
-    h = (i[..., 0] * 73856093) ^ (i[..., 1] * 19349663) ^ (i[..., 2] * 83492791) ^ (seed * 2654435761)
-    h = (h ^ (h >> 13)) * 1274126177
-    h = h ^ (h >> 16)
-    return (h & 0xFFFFFF).astype(np.float64) / float(0xFFFFFF)
+_TABLE = np.random.default_rng(20040101).random(64 ** 3)
 
 
-def value_noise(P, scale, seed=0):
-    """Smooth value noise in [0, 1] at points ``P`` (n, 3) with feature size ``scale`` (m)."""
-    q = P / scale
+def value_noise(P, scale, seed=0, grad=False):
+    """Smooth value noise in [0, 1] at points ``P`` (n, 3) with feature size ``scale`` (m); with
+    ``grad`` also its gradient (n, 3) (per metre). Lattice values come from a fixed random table
+    (period 64 cells, offset per seed)."""
+    q = P / scale + (np.array([17.0, 31.0, 47.0]) * (seed % 9973))
     i0 = np.floor(q).astype(np.int64)
     f = q - i0
     u = f * f * f * (f * (f * 6 - 15) + 10)
-    out = 0.0
+    du = 30.0 * f * f * (f - 1.0) ** 2
+    ix = [(i0[:, 0] & 63) * 4096, ((i0[:, 0] + 1) & 63) * 4096]
+    iy = [(i0[:, 1] & 63) * 64, ((i0[:, 1] + 1) & 63) * 64]
+    iz = [i0[:, 2] & 63, (i0[:, 2] + 1) & 63]
+    c = {}
     for dx in (0, 1):
-        wx = u[:, 0] if dx else 1 - u[:, 0]
         for dy in (0, 1):
-            wy = u[:, 1] if dy else 1 - u[:, 1]
             for dz in (0, 1):
-                wz = u[:, 2] if dz else 1 - u[:, 2]
-                out = out + wx * wy * wz * _hash3(i0 + np.array([dx, dy, dz]), seed)
-    return out
+                c[dx, dy, dz] = _TABLE[ix[dx] + iy[dy] + iz[dz]]
+    ux, uy, uz = u[:, 0], u[:, 1], u[:, 2]
+    # trilinear blend
+    x00 = c[0, 0, 0] + ux * (c[1, 0, 0] - c[0, 0, 0])
+    x10 = c[0, 1, 0] + ux * (c[1, 1, 0] - c[0, 1, 0])
+    x01 = c[0, 0, 1] + ux * (c[1, 0, 1] - c[0, 0, 1])
+    x11 = c[0, 1, 1] + ux * (c[1, 1, 1] - c[0, 1, 1])
+    y0 = x00 + uy * (x10 - x00)
+    y1 = x01 + uy * (x11 - x01)
+    val = y0 + uz * (y1 - y0)
+    if not grad:
+        return val
+    dx00 = c[1, 0, 0] - c[0, 0, 0]
+    dx10 = c[1, 1, 0] - c[0, 1, 0]
+    dx01 = c[1, 0, 1] - c[0, 0, 1]
+    dx11 = c[1, 1, 1] - c[0, 1, 1]
+    gy0 = dx00 + uy * (dx10 - dx00)
+    gy1 = dx01 + uy * (dx11 - dx01)
+    gx = (gy0 + uz * (gy1 - gy0)) * du[:, 0]
+    gyv = ((x10 - x00) + uz * ((x11 - x01) - (x10 - x00))) * du[:, 1]
+    gz = (y1 - y0) * du[:, 2]
+    return val, np.stack([gx, gyv, gz], 1) / scale
 
 
 def fbm(P, scale, octaves=4, seed=0, gain=0.5):
@@ -177,8 +196,8 @@ def vermilion_mask(P, hw=H.MOUTH_HALF_WIDTH):
 def hair_mask(P, seed=3):
     """Short scalp hair above an irregular hairline (with sideburns)."""
     phi = np.degrees(np.abs(head_azimuth(P)))
-    kn = [0, 20, 35, 48, 60, 70, 76, 80, 84, 88, 93, 110, 130, 150, 180]
-    yh = [0.079, 0.077, 0.069, 0.060, 0.050, 0.042, 0.030, -0.004, -0.006, 0.020, 0.027, 0.024, 0.000,
+    kn = [0, 20, 35, 48, 60, 70, 77, 80, 83, 87, 93, 110, 130, 150, 180]
+    yh = [0.079, 0.077, 0.069, 0.060, 0.050, 0.042, 0.030, 0.008, 0.006, 0.022, 0.027, 0.024, 0.000,
           -0.045, -0.068]
     hl = np.interp(phi, kn, yh)
     jitter = (fbm(P, 0.006, 3, seed) - 0.5) * 0.006
@@ -337,11 +356,14 @@ class SkinTextures:
     ``neutral``: (V, 3) neutral skin vertices (head frame); ``faces`` (F, 3); ``atlas``: dict of
     :func:`build_atlas`; ``dots``: (D, 3) neutral dot centres and ``dot_radius`` (m)."""
 
-    def __init__(self, neutral, faces, atlas, res, dots, dot_radius, static=None):
+    def __init__(self, neutral, faces, atlas, res, dots, dot_radius, static=None, raster=None):
         self.res = res
         self.faces = faces
         self.neutral = neutral
-        tri, bary, inside = rasterize(atlas["uv"], atlas["uv_faces"], res)
+        if raster is None:
+            raster = rasterize(atlas["uv"], atlas["uv_faces"], res)
+        tri, bary, inside = raster
+        self.raster = (tri, bary, inside)
         self.covered = np.nonzero(tri >= 0)[0]
         self.inside = inside
         self.tex_tri = tri[self.covered]
@@ -375,8 +397,8 @@ class SkinTextures:
         n1 = fbm(P, 0.030, 3, 11)
         n2 = fbm(P, 0.004, 3, 12)
         pores = value_noise(P, 0.0007, 13)
-        col = SKIN_BASE[None] * (0.92 + 0.16 * n1[:, None]) * (0.95 + 0.10 * n2[:, None])
-        col *= (0.97 + 0.06 * pores[:, None])
+        col = SKIN_BASE[None] * (0.93 + 0.14 * n1[:, None]) * (0.97 + 0.06 * n2[:, None])
+        col *= (0.98 + 0.04 * pores[:, None])
         x, y, z = P[:, 0], P[:, 1], P[:, 2]
         # redness: cheeks, nose, ears; eyelids slightly darker and pinker
         red = (0.7 * gauss(np.hypot(np.abs(x) - 0.040, y + 0.020) / 0.014)
@@ -391,8 +413,8 @@ class SkinTextures:
         # freckles: sparse small spots over the nose and cheeks
         fr = value_noise(P, 0.0016, 21)
         fz = gauss(np.hypot(x / 0.05, (y + 0.01) / 0.035)) * (z > 0.05)
-        spots = smoothstep(0.80, 0.86, fr) * fz
-        col = col * (1 - 0.35 * spots[:, None]) + spots[:, None] * np.array([0.10, 0.04, 0.01]) * 0.35
+        spots = smoothstep(0.90, 0.95, fr) * fz
+        col = col * (1 - 0.20 * spots[:, None]) + spots[:, None] * np.array([0.10, 0.04, 0.01]) * 0.20
         # stubble shadow
         st = stubble_mask(P) * (0.6 + 0.4 * value_noise(P, 0.0005, 31))
         col *= (1.0 - 0.10 * st[:, None])
@@ -428,8 +450,7 @@ class SkinTextures:
             rough = rough * (1 - cov) + 0.40 * cov
         # fine bumps (pores / orange-peel): slopes in the tangent frame
         s, t, n = self.frame
-        bump = lambda Q: 0.000020 * value_noise(Q, 0.0009, 61) + 0.000012 * value_noise(Q, 0.0004, 62)
-        g = _grad(bump, P, eps=5e-5)
+        g = 0.000020 * value_noise(P, 0.0009, 61, grad=True)[1] + 0.000012 * value_noise(P, 0.0004, 62, grad=True)[1]
         slopes = np.stack([np.einsum("ij,ij->i", g, s), np.einsum("ij,ij->i", g, t)], 1)
         slopes *= (1.0 - 0.7 * hm)[:, None]
         albedo = np.zeros((n_all, 3), np.float32)
