@@ -17,6 +17,12 @@ def tile8(image: np.ndarray, exposure: float = 1.0, size: int | None = None) -> 
     """One tile: linear (H, W, 3|4) → sRGB uint8 (H, W, 3), alpha over grey, optionally resized to ``size``."""
     import cv2
 
+    if np.asarray(image).dtype == np.uint8:  # already an 8-bit picture (e.g. an error map)
+        out = np.asarray(image)
+        if size is not None and out.shape[0] != size:
+            out = cv2.resize(out, (int(round(out.shape[1] * size / out.shape[0])), size),
+                             interpolation=cv2.INTER_NEAREST)
+        return out
     img = np.asarray(image, np.float32)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=-1)

@@ -40,7 +40,7 @@ def render_truth(scene, camera: Camera, spp: int = 256, seed: int = 0, max_depth
         n = min(per_pass, spp - done)
         ray = camera_rays(camera, n, seed=seed * 7919 + pass_index)
         sampler = mi.load_dict({"type": "independent"})
-        sampler.seed(seed * 104729 + pass_index, h * w * n)
+        sampler.seed((seed * 104729 + pass_index) % (1 << 32), h * w * n)
         spec, valid, _ = integrator.sample(scene, sampler, ray, None, mi.Bool(True))
         rgb = from_jit(spec)
         hit = np.asarray(scene.ray_intersect(ray).is_valid()).astype(np.float64)

@@ -1,0 +1,1 @@
+"""Evaluation: comparing renders with the synthetic ground truth (the only code that reads ``truth/``)."""

@@ -1,0 +1,45 @@
+"""Image error metrics on a mask. Images are linear sRGB (H, W, 3|4); masks (H, W) bool.
+
+PSNR uses the reference's peak on the mask (``20 log10(max_ref / RMSE)``), so it does not
+depend on the absolute exposure of a scene; RMSE is over all three channels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def _check(a, b, mask):
+    a = np.asarray(a, np.float64)[..., :3]
+    b = np.asarray(b, np.float64)[..., :3]
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    mask = np.ones(a.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != a.shape[:2]:
+        raise ValueError(f"mask {mask.shape} does not match images {a.shape[:2]}")
+    if not mask.any():
+        raise ValueError("empty mask")
+    return a, b, mask
+
+
+def psnr(image, reference, mask=None) -> float:
+    """PSNR in dB of ``image`` against ``reference`` on ``mask`` (peak: the reference's maximum there)."""
+    a, b, mask = _check(image, reference, mask)
+    mse = ((a - b)[mask] ** 2).mean()
+    peak = b[mask].max()
+    if mse == 0:
+        return float("inf")
+    return float(10 * np.log10(max(peak, 1e-30) ** 2 / mse))
+
+
+def relative_error(image, reference, mask=None) -> float:
+    """Σ|a − b| / Σ|b| on the mask."""
+    a, b, mask = _check(image, reference, mask)
+    return float(np.abs(a - b)[mask].sum() / max(np.abs(b)[mask].sum(), 1e-30))
+
+
+def summary(values) -> dict:
+    v = np.asarray([x for x in values if np.isfinite(x)], np.float64)
+    if not len(v):
+        return {"n": 0}
+    return {"n": int(len(v)), "mean": float(v.mean()), "min": float(v.min()), "median": float(np.median(v)),
+            "max": float(v.max())}
