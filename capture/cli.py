@@ -74,6 +74,11 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
     from mifacerf.capture.session import CaptureSession, SessionConfig, SessionError, SessionInterrupted
     from mifacerf.capture.motion import MotionCheck
 
+    if not simulate and not resume:
+        if not port:
+            raise click.UsageError("--port is required without --simulate")
+        if not camera_backend:
+            raise click.UsageError("--cameras BACKEND is required without --simulate")
     if resume:
         try:
             session = CaptureSession.open(out)
@@ -86,6 +91,8 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
         if simulate and sim_opts is None:
             raise click.UsageError("this session was recorded with real hardware; resume it without --simulate")
         simulate = sim_opts is not None
+        if not simulate and not (port and camera_backend):
+            raise click.UsageError("resuming a hardware session needs --port and --cameras")
     else:
         session = _new_session(out, simulate, preset, positions, strobes, resolution, n_expressions, radiometry_file,
                                SessionConfig(max_takes=max_takes, motion=MotionCheck(motion_sample, "laplacian",
@@ -108,22 +115,19 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
             port = lab.start()
             cameras, operator = lab.cameras, lab.operator
             _echo(f"simulated strobe controller on {port}")
-        else:
-            if not port:
-                raise click.UsageError("--port is required without --simulate")
-            if not camera_backend:
-                raise click.UsageError("--cameras BACKEND is required without --simulate")
+        try:
+            controller = StrobeController(port, timeout=timeout, retries=retries)
+        except PortError as exc:
+            raise Interrupted(f"{exc}\nThe session in {out} is saved; resume with `mifacerf capture {out} --resume`.")
+        if not simulate:
             from mifacerf.capture.hardware.cameras import CameraError, camera_backend as make_backend
 
             try:
                 cameras = make_backend(camera_backend, rig=session.rig)
             except CameraError as exc:
+                controller.close()
                 raise click.ClickException(str(exc)) from exc
             operator = _ConsoleOperator()
-        try:
-            controller = StrobeController(port, timeout=timeout, retries=retries)
-        except PortError as exc:
-            raise Interrupted(f"{exc}\nThe session in {out} is saved; resume with `mifacerf capture {out} --resume`.")
         with controller:
             try:
                 rep = session.run(controller, cameras, operator, progress=_echo)

@@ -54,7 +54,8 @@ def representative_lights(n_positions: int, n_strobes: int, k: int = 32, lights=
 
 
 def _luminance(image: np.ndarray) -> np.ndarray:
-    img = np.asarray(image, np.float64)
+    """Luminance (H, W) of (H, W[, C]); non-finite pixels (never written by a session) count as 0."""
+    img = np.nan_to_num(np.asarray(image, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     if img.ndim == 3:
         img = img @ np.array([0.2126, 0.7152, 0.0722])[: img.shape[2]] if img.shape[2] == 3 else img.mean(-1)
     return img

@@ -25,7 +25,7 @@ import numpy as np
 from ...camera import Camera
 from ...capture_folder import Radiometry
 from ...rig import Rig
-from ..hardware.cameras import CameraSystem, Frame, register_backend
+from ..hardware.cameras import CameraSystem, Frame
 from .device import Trigger
 
 
@@ -242,5 +242,3 @@ class SyntheticCameras(CameraSystem):
         d = uv1[0] - uv0[0]
         return float(d[0]), float(d[1])
 
-
-register_backend("synthetic", SyntheticCameras)
