@@ -16,6 +16,8 @@ LAZY_COMMANDS = {
     "build": "mifacerf.rendering.cli:build_cmd",
     "render": "mifacerf.rendering.cli:render_cmd",
     "compress": "mifacerf.rendering.cli:compress_cmd",
+    "bench": "mifacerf.evaluation.cli:bench_cmd",
+    "evaluate": "mifacerf.evaluation.cli:evaluate_cmd",
     "demo": "mifacerf.demo:demo_cmd",
 }
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..jitarrays import to_jit
+from ..jitarrays import from_jit, to_jit
 from ..camera import Camera, stratified_pixel_samples
 from ..variant import ensure_variant
 
@@ -78,8 +78,7 @@ class MeshScene:
         ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
         pi = self.scene.ray_intersect_preliminary(ray)
         valid = np.asarray(pi.is_valid()).astype(bool)
-        uv = np.asarray(pi.prim_uv)
-        uv = uv.T if uv.shape[0] == 2 else uv
+        uv = np.nan_to_num(from_jit(pi.prim_uv))
         tri = np.where(valid, np.asarray(pi.prim_index).astype(np.int64), -1)
         bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
         bary[~valid] = 0.0

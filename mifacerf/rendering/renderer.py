@@ -58,13 +58,20 @@ class Renderer:
     still count as visible in that field.
     """
 
-    def __init__(self, model, depth_tolerance: float = 0.004, method: str = "exact", rank: int = 8):
+    def __init__(self, model, depth_tolerance: float = 0.004, method: str = "exact", rank: int = 8,
+                 lights: np.ndarray | None = None):
         if method not in ("exact", "pca"):
             raise ValueError(f"unknown render method {method!r}; choose 'exact' or 'pca'")
+        if lights is not None and method != "exact":
+            raise ValueError("a light subset is supported by the exact method only")
         self.model = model
         self.depth_tolerance = depth_tolerance
         self.method = method
         self.rank = rank
+        # a subset of the light stage (benchmarks of light count): only these lights' data are used,
+        # each standing for its spherical-Voronoi cell among the subset
+        self.lights = None if lights is None else np.asarray(lights, np.int64)
+        self.light_directions = model.light_directions if lights is None else model.light_directions[self.lights]
         neutral = model.vertices[model.expression_index(model.neutral)]
         self._scene = MeshScene(neutral, model.triangles)
         meshes = part_meshes(model.template) if model.references else {}
@@ -76,7 +83,7 @@ class Renderer:
     def light_basis(self, env: Environment) -> RotatedLightBasis:
         key = id(env)
         if key not in self._bases or self._bases[key][0] is not env:
-            self._bases[key] = (env, RotatedLightBasis(env, self.model.light_directions))
+            self._bases[key] = (env, RotatedLightBasis(env, self.light_directions))
         return self._bases[key][1]
 
     def _device_pca(self, s: int, c: int):
@@ -89,7 +96,8 @@ class Renderer:
     def _device_rf(self, s: int, c: int, f):
         key = (s, c)
         if key not in self._device:
-            self._device[key] = to_device_f16(np.asarray(f.rf))
+            rf = np.asarray(f.rf) if self.lights is None else np.asarray(f.rf)[:, self.lights]
+            self._device[key] = to_device_f16(rf)
         return self._device[key]
 
     # ----------------------------------------------------------------- frame
@@ -102,7 +110,7 @@ class Renderer:
         lighting = {}
         for s in plan.sources:
             used = plan.expression_weights[:, s] > 0
-            L = np.zeros((model.n_vertices, model.n_lights, 3), np.float32)
+            L = np.zeros((model.n_vertices, len(self.light_directions), 3), np.float32)
             L[used] = basis.rotated(plan.rotations[s][used])
             lighting[s] = L
         stats.add_time("lighting", time.perf_counter() - t0)
@@ -122,7 +130,7 @@ class Renderer:
             active = np.flatnonzero(wsum_t > 0)
             coef = wt[active] / wsum_t[active, None]
             if self.method == "exact":
-                lit = lit_texels(data, model.n_lights, active, fv[active], coef, lighting[s])
+                lit = lit_texels(data, len(self.light_directions), active, fv[active], coef, lighting[s])
             else:
                 comp, dev = data
                 m_v = np.einsum("vlc,lc->vc", lighting[s], comp["mean"])
@@ -173,19 +181,21 @@ class Renderer:
                 px = pf["pixels"][sel]
                 index[px[:, 0], px[:, 1]] = np.arange(len(sel))
                 depth[px[:, 0], px[:, 1]] = pf["depth"][sel]
-                views.append((int(c), float(wc), {"index": index, "depth": depth, "rf": np.asarray(pf["rf"][sel])}))
+                rf = np.asarray(pf["rf"][sel])
+                views.append((int(c), float(wc), {"index": index, "depth": depth,
+                                                  "rf": rf if self.lights is None else rf[:, self.lights]}))
                 if (ref, cam.name + ":parts") not in stats.fields_loaded:
                     stats.fields_loaded.append((ref, cam.name + ":parts"))
             if views:
                 info[p] = {"reference": T_ref, "lighting": basis.rotated(R_delta[None])[0],
-                           "light_dirs": model.light_directions @ R_delta, "views": views}
+                           "light_dirs": self.light_directions @ R_delta, "views": views}
 
         def env_lookup(d):
             from ..variant import ensure_variant as _ev
 
             return _ev().Color3f(*basis._lookup(d))
 
-        return PartFrame(model.cameras, model.n_lights, info, env_lookup)
+        return PartFrame(model.cameras, len(self.light_directions), info, env_lookup)
 
     def _view_sampler(self):
         if not hasattr(self, "_views"):
