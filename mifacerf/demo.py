@@ -1,27 +1,184 @@
-"""``mifacerf demo``: the main job on the embedded synthetic subject."""
+"""``mifacerf demo``: the main job, end to end, on the embedded synthetic subject.
+
+Stages (each timed; a stage whose output is already in OUT is reused, so a second run
+takes minutes):
+
+1. **capture** — the simulated light stage photographs the synthetic subject (``OUT/capture``,
+   ground truth in ``OUT/truth``), with its contact sheet;
+2. **register** — registration from the capture alone (``OUT/capture/registration``);
+3. **model** — the relightable morphable model (``OUT/model``) and its PCA-compressed fields;
+4. **renders** — blends of captured expressions under three environments, from a capture
+   camera and from novel viewpoints, composited into the environment plates
+   (``OUT/renders``: EXR + PNG, and ``renders.png``, a contact grid);
+5. **performance** — a tracked multi-view performance driving the model, composited into a
+   plate (``OUT/performance_render``: frames, video), if the tracking stage is available;
+6. **metrics** — PSNR against path-traced ground truth per case and time per stage
+   (``OUT/metrics.json``), and the run-time-against-error benchmark (``OUT/bench``).
+"""
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 
 import click
+import numpy as np
+
+ENVIRONMENTS = ("sky", "interior", "gradient")
 
 
-@click.command("demo")
-@click.option("-o", "--out", default="mifacerf-demo", show_default=True, type=click.Path(file_okay=False),
-              help="Output folder (the synthetic capture is cached inside it).")
-@click.option("--preset", default="draft", show_default=True, type=click.Choice(["tiny", "draft", "paper"]))
-def demo_cmd(out, preset):
-    """Synthesise the default subject (cached) and write its contact sheet."""
+class Stages:
+    """Times stages and prints a summary table at the end."""
+
+    def __init__(self):
+        self.rows = []
+
+    def run(self, name: str, fn, *args, **kwargs):
+        click.secho(f"==> {name}", bold=True)
+        t0 = time.perf_counter()
+        result = fn(*args, **kwargs)
+        self.rows.append((name, time.perf_counter() - t0))
+        return result
+
+    def table(self) -> str:
+        width = max(len(n) for n, _ in self.rows)
+        lines = [f"{'stage'.ljust(width)}  seconds", "-" * (width + 10)]
+        lines += [f"{n.ljust(width)}  {s:8.1f}" for n, s in self.rows]
+        lines.append(f"{'total'.ljust(width)}  {sum(s for _, s in self.rows):8.1f}")
+        return "\n".join(lines)
+
+
+def stage_capture(out: Path, preset: str) -> Path:
     from tqdm.auto import tqdm
 
     from .contact_sheet import contact_sheet
     from .synthetic.synth import synthesize
 
-    out = Path(out)
     cap = out / "capture"
-    if not (cap / "manifest.json").exists():
-        synthesize(out, preset)
+    if (cap / "manifest.json").exists():
+        click.echo(f"   cached: {cap}")
     else:
-        click.echo(f"using the cached capture in {cap}")
-    png = contact_sheet(cap, out / "contact_sheet.png", progress=lambda x: tqdm(x, desc="contact sheet"))
-    click.echo(f"contact sheet: {png}")
+        synthesize(out, preset)
+    if not (out / "contact_sheet.png").exists():
+        contact_sheet(cap, out / "contact_sheet.png", progress=lambda x: tqdm(x, desc="contact sheet"))
+    return cap
+
+
+def stage_register(cap: Path) -> Path:
+    from .registration.register import register_capture
+
+    return register_capture(cap)
+
+
+def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,)) -> Path:
+    from tqdm.auto import tqdm
+
+    from .rendering.build import build_model
+    from .rendering.compression import compress_model
+    from .rendering.model import Model
+
+    model = out / "model"
+    stamp = (reg / "registration.json").stat().st_mtime
+    if not ((model / "model.json").exists() and (model / "model.json").stat().st_mtime > stamp):
+        build_model(cap, model, reg, overwrite=True, progress=lambda j: tqdm(j, desc="build", unit="field"))
+    m = Model(model)
+    for k in ranks:
+        if k not in m.meta.get("compressed", {}).get("pca", []):
+            compress_model(m, k, progress=lambda j: tqdm(j, desc=f"compress pca{k}", unit="field"))
+    return model
+
+
+def stage_renders(model: Path, out: Path) -> dict:
+    """The grid: 3 blends × 3 environments × (a capture camera, two novel views)."""
+    from tqdm.auto import tqdm
+
+    import mifacerf as mf
+
+    from .imageio import write_exr, write_png
+    from .pictures import grid, label, tile8
+    from .rendering.renderer import RenderStats
+
+    face = mf.load_model(model)
+    names = face.expressions
+    pick = lambda *cands: next((c for c in cands if c in names), names[min(1, len(names) - 1)])  # noqa: E731
+    blends = [{pick("smile"): 0.6, pick("neutral"): 0.4},
+              {pick("surprise", "eyes_wide_open"): 0.5, pick("viseme_aa", "mouth_open_wide"): 0.5},
+              {pick("anger", "frown", "disgust"): 0.7, pick("viseme_oo", "viseme_pbm"): 0.3}]
+    views = [None, (20.0, 3.0), (-25.0, -4.0)]
+    rdir = out / "renders"
+    rdir.mkdir(parents=True, exist_ok=True)
+    tiles, times = [], []
+    jobs = [(b, e, v) for b in range(len(blends)) for e in ENVIRONMENTS for v in views]
+    for b, env, view in tqdm(jobs, desc="renders"):
+        cam = face.camera(view, size=256)
+        st = RenderStats()
+        t0 = time.perf_counter()
+        rgba = face.render(blends[b], camera=cam, env=env, spp=4, stats=st)
+        times.append({"seconds": time.perf_counter() - t0, "stages": st.times})
+        comp = mf.composite(rgba, mf.environment_plate(env, cam))
+        tag = f"blend{b}_{env}_{'capture' if view is None else f'yaw{view[0]:+.0f}'}"
+        write_exr(rdir / f"{tag}.exr", rgba)
+        write_png(rdir / f"{tag}.png", comp)
+        desc = "+".join(f"{w:.1f} {n}" for n, w in blends[b].items())
+        tiles.append(label(tile8(comp, size=192), f"{desc[:30]} | {env}"))
+    write_png(out / "renders.png", grid(tiles, len(views) * len(ENVIRONMENTS)))
+    warm = times[1:] or times
+    return {"frames": len(times), "seconds_per_frame": float(np.mean([t["seconds"] for t in warm])),
+            "blends": blends}
+
+
+def stage_performance(out: Path, model: Path) -> dict | None:
+    try:
+        from .tracking.demo import run_performance
+    except ImportError:
+        click.echo("   (the tracking stage is not available in this installation)")
+        return None
+    return run_performance(out, model)
+
+
+def stage_metrics(out: Path, model: Path, fast: bool) -> dict:
+    from tqdm.auto import tqdm
+
+    from .evaluation.bench import run as bench
+    from .evaluation.render_cases import evaluate
+
+    report = evaluate(out, model, envs=ENVIRONMENTS, n=1, seed=int(time.time()), spp_truth=256 if fast else 1024,
+                      progress=lambda j: tqdm(j, desc="metrics"), pictures=out / "metrics_cases.png")
+    b = bench(model, out, out / "bench", n_frames=1, size=128, spp_truth=256 if fast else 512, quick=True,
+              progress=lambda x, desc="": tqdm(x, desc=desc))
+    return {"cases": report, "bench": b}
+
+
+@click.command("demo")
+@click.option("-o", "--out", default="mifacerf-demo", show_default=True, type=click.Path(file_okay=False),
+              help="Output folder; its capture, registration and model are reused by later runs.")
+@click.option("--preset", default="draft", show_default=True, type=click.Choice(["tiny", "draft", "paper"]))
+@click.option("--fast", is_flag=True, help="Fewer ground-truth samples in the metrics (noisier, quicker).")
+def demo_cmd(out, preset, fast):
+    """Run the main job on the embedded synthetic subject: capture, registration, model, renders,
+    performance, metrics."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    st = Stages()
+    metrics = {"preset": preset}
+    cap = st.run("capture (simulated light stage)", stage_capture, out, preset)
+    reg = st.run("registration", stage_register, cap)
+    model = st.run("model build + compression", stage_model, cap, reg, out)
+    metrics["renders"] = st.run("renders (blends x environments x views)", stage_renders, model, out)
+    perf = st.run("performance (track + drive)", stage_performance, out, model)
+    if perf is not None:
+        metrics["performance"] = perf
+    m = st.run("metrics (ground truth, benchmark)", stage_metrics, out, model, fast)
+    metrics["cases"] = m["cases"]["summary"]
+    metrics["truth_noise_psnr"] = m["cases"]["truth_noise_psnr"]
+    metrics["bench"] = m["bench"]["results"]
+    metrics["stages_seconds"] = dict(st.rows)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
+    click.echo("")
+    click.echo(st.table())
+    click.echo("")
+    for k, v in metrics["cases"].items():
+        click.echo(f"case {k}: PSNR {v['psnr'].get('mean', float('nan')):.2f} dB against ground truth, "
+                   f"{v['seconds'].get('mean', float('nan')):.2f} s per frame")
+    click.echo(f"outputs in {out}/: contact_sheet.png renders.png renders/ metrics.json metrics_cases.png "
+               f"bench/runtime_vs_error.png" + (" performance_render/" if perf is not None else ""))
