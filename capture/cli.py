@@ -157,7 +157,12 @@ def _new_session(out, simulate, preset_name, positions, strobes, resolution, n_e
                                          seed=7)
     rig = Rig(lights, camera_ring(CAMERA_LAYOUTS[p.n_cameras], width=res, height=res))
     try:
-        exprs = session_expressions(n_expressions or p.n_expressions)
+        if simulate and sim_opts.get("renderer") == "synthetic":  # the synthetic subject's own expressions
+            from mifacerf.capture.simulation.subject import subject_expressions
+
+            exprs = subject_expressions(n_expressions or p.n_expressions)
+        else:
+            exprs = session_expressions(n_expressions or p.n_expressions)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--expressions") from exc
     radiometry, extra = None, {}

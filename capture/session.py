@@ -395,12 +395,16 @@ class CaptureSession:
             pass
 
     def _link_stats(self) -> None:
+        """Journal the driver's counters since the last call (so a killed process loses none)."""
         if self.controller is None:
             return
+        stats = self.controller.stats.to_dict()
+        if not any(stats.values()):
+            return
         try:
-            self._log("link_stats", stats=self.controller.stats.to_dict())
+            self._log("link_stats", stats=stats)
             self.controller.stats = type(self.controller.stats)()
-        except Exception:  # noqa: BLE001
+        except Exception:  # noqa: BLE001 - the disk may be full; counters are not data
             pass
 
     def _hello(self) -> None:
@@ -619,6 +623,7 @@ class CaptureSession:
             self._log("frame_missing", expression=e, take=take.number, count=missing_frames)
         if reset is not None:
             self._reconnect("device reset")
+        self._link_stats()
 
     def _store(self, take: Take, cam, light: int, image: np.ndarray) -> str | None:
         path = self.root / _rel(TAKE_PATTERN, take.expression, cam.name, light, take.number)
