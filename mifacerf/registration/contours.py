@@ -14,8 +14,9 @@ edge). Each iteration (:func:`relax_margin`):
   (along its 2-D normal — sliding along a curve is not observed), the two end vertices (the
   corners) towards the matching ends of the polyline;
 * solves for 3-D steps of all margin vertices at once: the linearised pixel residuals of
-  all views (Jacobians of the full camera model), a smoothness term tying each step to its
-  neighbours' along the margin, and a weak pull to stay put;
+  all views (Jacobians of the full camera model), a smoothness term keeping the margin's edge
+  vectors close to the initial estimate's (the morph knows how the vertices are spaced along
+  the curve; the curves do not), and a weak damping of each step;
 * applies the step. Ten iterations converge (nearest points change little near the answer).
 
 :func:`propagate` then carries the margins' displacement into the nearby non-fiducial
@@ -61,7 +62,7 @@ def curve_residuals(cam: Camera, X: np.ndarray, poly: np.ndarray) -> np.ndarray:
     return np.linalg.norm(q - p, axis=1)
 
 
-def relax_margin(X0: np.ndarray, views: dict, cams: dict, iterations: int = 10, smooth: float = 0.5,
+def relax_margin(X0: np.ndarray, views: dict, cams: dict, iterations: int = 30, smooth: float = 0.5,
                  stay: float = 0.02, corners: bool = True) -> np.ndarray:
     """Relax an ordered margin X0 (n, 3) onto rotoscoped polylines ``views`` {camera: (P, 2)}.
 
@@ -70,6 +71,7 @@ def relax_margin(X0: np.ndarray, views: dict, cams: dict, iterations: int = 10, 
     ``corners``: pull the end vertices to the polyline's ends.
     """
     X = np.asarray(X0, np.float64).copy()
+    Xref = X.copy()
     n = len(X)
     if n == 0 or len(views) == 0:
         return X
@@ -107,7 +109,13 @@ def relax_margin(X0: np.ndarray, views: dict, cams: dict, iterations: int = 10, 
                 if 0 <= j < n:
                     A[3 * i:3 * i + 3, 3 * i:3 * i + 3] += smooth * scale * np.eye(3)
                     A[3 * i:3 * i + 3, 3 * j:3 * j + 3] -= smooth * scale * np.eye(3)
-        delta = np.linalg.solve(A, g.reshape(-1)).reshape(n, 3)
+        # the smoothness term keeps the margin's edge vectors close to the initial estimate's
+        # (relative to X0, not to the current iterate, so vertices cannot drift along the curve)
+        b = g.copy()
+        r = (X[:-1] - X[1:]) - (Xref[:-1] - Xref[1:])
+        b[:-1] -= smooth * scale * r
+        b[1:] += smooth * scale * r
+        delta = np.linalg.solve(A, b.reshape(-1)).reshape(n, 3)
         X += delta
         if np.abs(delta).max() < 1e-7:
             break

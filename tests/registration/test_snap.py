@@ -1,0 +1,92 @@
+"""3-D snap and the progressive snap-to on strength maps with known dots."""
+import numpy as np
+import pytest
+
+from mifacerf.registration.snap import Views, ball, dot_graph, progressive_snap, snap
+from mifacerf.registration.triangulate import project_all
+from mifacerf.rig import CAMERA_LAYOUTS, camera_ring
+
+
+def maps_for(cams, X, sigma=0.9, size=128, weights=None):
+    yy, xx = np.mgrid[0:size, 0:size]
+    uv = project_all(cams, X)
+    out = []
+    for c in range(len(cams)):
+        m = np.zeros((size, size))
+        for k, (u, v) in enumerate(uv[c]):
+            if np.isfinite(u):
+                w = 1.0 if weights is None else weights[k]
+                m = np.maximum(m, w * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2)))
+        out.append(m.astype(np.float32))
+    return out
+
+
+@pytest.fixture(scope="module")
+def rig():
+    cams = camera_ring(CAMERA_LAYOUTS[6], width=128, height=128, seed=2)
+    g = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 7), np.linspace(-0.06, 0.06, 8)), -1).reshape(-1, 2)
+    X = np.stack([g[:, 0], g[:, 1], 0.09 - 3 * (g[:, 0] ** 2 + g[:, 1] ** 2)], 1)
+    return cams, X
+
+
+def test_ball_offsets():
+    b = ball(1.0, 0.5)
+    assert (b[0] == 0).all() and np.all(np.linalg.norm(b, axis=1) <= 1.0 + 1e-12)
+    assert len(b) == 33
+
+
+def test_snap_finds_dots_to_a_fraction_of_a_pixel(rig, rng):
+    cams, X = rig
+    views = Views(cams, maps_for(cams, X), centroid_sigma=1.3)
+    fp = cams[0].pixel_footprint(1.3)
+    start = X + rng.normal(0, 1.0 * fp, X.shape)
+    vis = np.ones((len(cams), len(X)), bool)
+    r = snap(views, start, vis, radius=3 * fp, step=0.5 * fp)
+    assert r.ok.all()
+    err = np.linalg.norm(r.X - X, axis=1) / fp
+    assert np.median(err) < 0.1 and err.max() < 0.3
+    assert np.all(r.strength > 4.5)        # ~1 per view, six views
+
+
+def test_snap_without_a_dot_does_not_succeed(rig):
+    cams, X = rig
+    views = Views(cams, maps_for(cams, X[:10]))
+    fp = cams[0].pixel_footprint(1.3)
+    vis = np.ones((len(cams), 1), bool)
+    r = snap(views, X[20:21], vis, radius=2 * fp, step=0.5 * fp)
+    assert not r.ok[0] and r.strength[0] < 0.5
+
+
+def test_progressive_snap_propagates_offsets_and_marks_failures(rig, rng):
+    """A large smooth offset between prediction and truth (beyond the search radius) is recovered
+    by propagating offsets from the known points; a dot that is not in the images is never snapped."""
+    cams, X = rig
+    fp = cams[0].pixel_footprint(1.3)
+    shift = np.array([0.012, -0.007, 0.004])         # ~6 px: beyond the search, nearer other dots
+    pred = X - shift + rng.normal(0, 0.3 * fp, X.shape)
+    missing = 27                                     # this dot was never painted
+    present = np.setdiff1d(np.arange(len(X)), [missing])
+    views = Views(cams, maps_for(cams, X[present]), centroid_sigma=1.3)
+    from scipy.spatial import Delaunay
+    F = Delaunay(X[:, :2]).simplices
+    nb = dot_graph(len(X), F, np.ones(len(X), bool))
+    known = {i: X[i] for i in (0, 55)}
+    vis = np.ones((len(cams), len(X)), bool)
+    r = progressive_snap(views, pred, np.arange(len(X)), nb, known, vis, radius=3 * fp, step=0.5 * fp)
+    assert not r.snapped[missing]
+    ok = np.setdiff1d(present, list(known))
+    assert r.snapped[ok].all()
+    assert np.max(np.linalg.norm(r.X[ok] - X[ok], axis=1)) < 0.3 * fp
+    assert r.schedule[0] == pytest.approx(max(r.strength[0], r.strength[55]))
+    # without propagation (every point snapped from its own prediction) the shift is too large
+    direct = snap(views, pred[ok], vis[:, ok], radius=3 * fp, step=0.5 * fp)
+    assert np.mean(np.linalg.norm(direct.X - X[ok], axis=1) < 0.3 * fp) < 0.5
+
+
+def test_dot_graph_links_dots_through_non_dots():
+    F = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]])
+    is_dot = np.array([True, False, True, False, True])
+    nb = dot_graph(5, F, is_dot)
+    assert set(nb[0]) == {2, 4} or set(nb[0]) == {2}
+    assert 0 in nb[2] and 4 in nb[2]
+    assert all(is_dot[n].all() for n in nb)
