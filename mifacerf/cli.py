@@ -46,3 +46,5 @@ def main():
 
 from mifacerf.capture.cli import capture_cmd, calibrate_group  # noqa: E402
 main.add_command(capture_cmd); main.add_command(calibrate_group)  # noqa: E702
+from mifacerf.registration.cli import register_cmd  # noqa: E402
+main.add_command(register_cmd)

@@ -11,6 +11,12 @@ strength maps), :mod:`.triangulate`, :mod:`.morph`, :mod:`.visibility`, :mod:`.s
 :mod:`.register` (orchestration), :mod:`.report` (evaluation against synthetic truth),
 :mod:`.cli`. Documentation: ``docs/registration.md``.
 """
-from .register import Options, RegistrationInputError, register_capture
-
 __all__ = ["Options", "RegistrationInputError", "register_capture"]
+
+
+def __getattr__(name):  # lazy: ``mifacerf --help`` imports only the command's module
+    if name in __all__:
+        from . import register
+
+        return getattr(register, name)
+    raise AttributeError(name)

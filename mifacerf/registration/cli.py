@@ -1,0 +1,56 @@
+"""``mifacerf register CAPTURE``: register a light-stage capture (paper §3–4). Heavy imports stay inside."""
+from __future__ import annotations
+
+import click
+
+
+@click.command("register")
+@click.argument("capture", type=click.Path(exists=True, file_okay=False))
+@click.option("--out", type=click.Path(file_okay=False), default=None,
+              help="Registration folder (default: CAPTURE/registration).")
+@click.option("--expressions", default=None, help="Comma-separated expressions to register (default: all; "
+              "the neutral is always registered first).")
+@click.option("--force", is_flag=True, help="Register again expressions already registered.")
+@click.option("--no-dot-removal", is_flag=True, help="Skip removing the dots from the OLAT images.")
+@click.option("--radius-px", type=float, default=None, help="3-D search radius of the snap, in pixel footprints.")
+@click.option("--floor", type=float, default=None,
+              help="Lowest dot-strength threshold, as a fraction of the initial one.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def register_cmd(capture, out, expressions, force, no_dot_removal, radius_px, floor, quiet):
+    """Register every expression of CAPTURE into the template (reads only CAPTURE: manifest, images, hand/).
+
+    Writes per expression the registered mesh, texture coordinates, visibility, head pose, teeth and
+    eye placement, dot-free image patches and a report (docs/registration.md). Expressions already
+    registered are skipped unless --force.
+    """
+    import json
+    from pathlib import Path
+
+    from ..capture_folder import CaptureError
+    from .register import Options, RegistrationInputError, register_capture
+
+    opt = Options(remove_dots=not no_dot_removal)
+    if radius_px is not None:
+        opt.radius_px = radius_px
+    if floor is not None:
+        opt.floor = floor
+    names = [n.strip() for n in expressions.split(",") if n.strip()] if expressions else None
+    try:
+        folder = register_capture(capture, out=out, expressions=names, force=force, options=opt,
+                                  progress=not quiet)
+    except (RegistrationInputError, CaptureError) as exc:
+        raise click.ClickException(str(exc)) from exc
+    meta = json.loads((Path(folder) / "registration.json").read_text())
+    click.echo(f"registration written to {folder}")
+    for problem in meta.get("hand_input_problems", []):
+        click.echo(f"  hand input: {problem}")
+    for name, rep in meta.get("expressions", {}).items():
+        if names and name not in names:
+            continue
+        dr = rep.get("dot_removal") or {}
+        line = (f"  {name:<20} {100 * rep['registered_fraction']:5.1f}% of {rep['n_dots']} fiducials registered")
+        if dr:
+            line += f"; dot response {dr['response_before']:.3f} -> {dr['response_after']:.3f}"
+        click.echo(line)
+        for flag in rep.get("flags", []):
+            click.echo(f"      ! {flag}")
