@@ -19,10 +19,15 @@ weights and need none) does, for every lane = (fiducial vertex ``f``, frame ``t`
 5. barycentric weights in closed form (``T (z - r)``), or — when the walk leaves
    the hull through a boundary facet — the barycentrics of the nearest point on
    the hull (a loop over the vertex's hull facets: point, segment or triangle
-   closest-point tests).
+   closest-point tests; in float64 in both precisions, see below).
 
-Everything is in the working precision (``float32`` or ``float64``, both
-tested).  Scalars that may change between calls (tolerances, sizes) are passed
+``precision`` (``float32`` or ``float64``, both tested) applies to steps 1–3,
+the bulk of the work.  Location (steps 4–5) always runs in float64 on the
+(rounded) coordinates: thin simplices have barycentric transforms of 1e3–1e6,
+and float32 arithmetic there made walks leave the hull from deep inside it
+(weights off by up to 1; caught by the float32/float64 test on out-of-set
+targets of the synthetic subject).  The float32 path's remaining error is the
+rounding of the coordinates times the weights' Lipschitz constant.  Scalars that may change between calls (tolerances, sizes) are passed
 as opaque arrays so the kernels are compiled once.  Index arrays are
 bound-checked in NumPy before they are handed to ``dr.gather``, which does not
 check them (32-bit indices).
@@ -235,7 +240,7 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
         Displacements are small numbers, which keeps float32 accurate to ~1e-9 m.
     precision : "float32" | "float64"
     inside_tol : float
-        Barycentric tolerance of the inside test (default 1e-5 for float32, 1e-10 for float64).
+        Barycentric tolerance of the inside test (default 1e-10; location runs in float64).
     max_iter : int
         Walk steps before the brute-force fallback (default ``2 * max simplices per vertex + 8``).
 
@@ -253,7 +258,7 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
     G, K = g.nb_idx.shape
     V, T = targets_vt.shape[:2]
     if inside_tol is None:
-        inside_tol = 1e-5 if precision == "float32" else 1e-10
+        inside_tol = 1e-10
     if max_iter is None:
         max_iter = 2 * int(g.s_count.max()) + 8
     sweeps = JACOBI_SWEEPS[precision]
@@ -266,11 +271,14 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
     I_ = lambda a: to_jit(Int, np.ascontiguousarray(a, dtype=np.int32).ravel())
     tgt = F_(targets_vt)
     nb_idx = to_jit(UInt, np.ascontiguousarray(g.nb_idx, dtype=np.uint32).ravel())
-    nb_w, ref, basis, z0, Tt, rr, fpts = (F_(a) for a in (g.nb_w, g.ref, g.basis, g.z0, g.T, g.r, g.fpts))
+    nb_w, ref, basis, z0 = (F_(a) for a in (g.nb_w, g.ref, g.basis, g.z0))
+    F64 = B.Float64
+    D_ = lambda a: to_jit(F64, np.ascontiguousarray(a, dtype=np.float64).ravel())
+    Tt, rr, fpts64 = D_(g.T), D_(g.r), D_(g.fpts)
     nbr, sid, ghost, s_start, s_first, s_count, fsid, f_first, f_count = (
         I_(a) for a in (g.nbr, g.sid, g.ghost, g.s_start, g.s_first, g.s_count, g.fsid, g.f_first, g.f_count))
-    eps = dr.opaque(Float, inside_tol)
-    big = dr.opaque(Float, np.finfo(npf).max)
+    eps = dr.opaque(F64, inside_tol)
+    big64 = dr.opaque(F64, np.finfo(np.float64).max)
     it_max = dr.opaque(Int, max_iter)
     T_op = dr.opaque(UInt, T)
 
@@ -323,14 +331,20 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
                 z[k] = dr.fma(a[1], dr.gather(Float, basis, e + 1), z[k])
                 z[k] = dr.fma(a[2], dr.gather(Float, basis, e + 2), z[k])
 
+        # -------- 4) location, always in float64: thin simplices have huge barycentric transforms, and
+        #          float32 arithmetic there sends walks out of the hull from deep inside it.  (The
+        #          float32 path's remaining error is z's own rounding times the weights' Lipschitz
+        #          constant.)
+        zh = [F64(zk) for zk in z]
+
         def bary(s):
             si = UInt(s)
-            rr_ = [z[k] - dr.gather(Float, rr, si * m + k) for k in range(m)]
+            rr_ = [zh[k] - dr.gather(F64, rr, si * m + k) for k in range(m)]
             b = []
             for i in range(m):
-                acc = Float(0.0)
+                acc = F64(0.0)
                 for k in range(m):
-                    acc = dr.fma(dr.gather(Float, Tt, (si * m + i) * m + k), rr_[k], acc)
+                    acc = dr.fma(dr.gather(F64, Tt, (si * m + i) * m + k), rr_[k], acc)
                 b.append(acc)
             b.append(1.0 - sum(b))
             return b
@@ -370,12 +384,12 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
             bmin = b[0]
             for j in range(1, m + 1):
                 bmin = dr.minimum(bmin, b[j])
-            bmin = dr.select(dr.gather(Int, ghost, sk) != 0, -big, bmin)
+            bmin = dr.select(dr.gather(Int, ghost, sk) != 0, -big64, bmin)
             better = bmin > best_min
             return k + 1, dr.select(better, sk, best_s), dr.select(better, bmin, best_min)
 
         _, best_s, best_min = dr.while_loop(
-            state=(Int(0), Int(s), -big), cond=b_cond, body=b_body, label="blend_bruteforce")
+            state=(Int(0), Int(s), -big64), cond=b_cond, body=b_body, label="blend_bruteforce")
         s = dr.select(stuck, best_s, s)
         outside = dr.select(stuck, best_min < -eps, outside)
         outside |= dr.gather(Int, ghost, s) != 0         # landed in a ghost sliver: nearest-boundary rule
@@ -387,25 +401,25 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
         b = [x / dr.select(bs > 0, bs, 1.0) for x in b]
         ids = [dr.gather(Int, sid, UInt(s) * (m + 1) + j) for j in range(m + 1)]
 
-        # -------- 5b) outside: nearest point on the hull facets
+        # -------- 5b) outside: nearest point on the hull facets (float64 too: far from the hull the
+        #          facets' distances differ by tiny relative amounts).
         ffirst = dr.gather(Int, f_first, f)
         fcount = dr.gather(Int, f_count, f)
-
         def facet_weights(h):
             hu = UInt(h)
-            Vt = [[dr.gather(Float, fpts, (hu * m + i) * m + c) for c in range(m)] for i in range(m)]
+            Vt = [[dr.gather(F64, fpts64, (hu * m + i) * m + c) for c in range(m)] for i in range(m)]
             if m == 1:
-                d = z[0] - Vt[0][0]
-                return [Float(1.0)], d * d
+                d = zh[0] - Vt[0][0]
+                return [F64(1.0)], d * d
             if m == 2:
                 ab = [Vt[1][c] - Vt[0][c] for c in range(2)]
                 den = ab[0] * ab[0] + ab[1] * ab[1]
-                num = (z[0] - Vt[0][0]) * ab[0] + (z[1] - Vt[0][1]) * ab[1]
+                num = (zh[0] - Vt[0][0]) * ab[0] + (zh[1] - Vt[0][1]) * ab[1]
                 tt = dr.clip(num / dr.select(den > 0, den, 1.0), 0.0, 1.0)
-                d = [z[c] - (Vt[0][c] + tt * ab[c]) for c in range(2)]
+                d = [zh[c] - (Vt[0][c] + tt * ab[c]) for c in range(2)]
                 return [1.0 - tt, tt], d[0] * d[0] + d[1] * d[1]
-            u, v, w = _closest_triangle(z, Vt[0], Vt[1], Vt[2], dr)
-            d = [z[c] - (u * Vt[0][c] + v * Vt[1][c] + w * Vt[2][c]) for c in range(3)]
+            u, v, w = _closest_triangle(zh, Vt[0], Vt[1], Vt[2], dr)
+            d = [zh[c] - (u * Vt[0][c] + v * Vt[1][c] + w * Vt[2][c]) for c in range(3)]
             return [u, v, w], d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 
         def h_cond(k, best_h, best_d2):
@@ -418,14 +432,14 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
             return k + 1, dr.select(better, h, best_h), dr.select(better, d2, best_d2)
 
         _, best_h, _ = dr.while_loop(
-            state=(Int(0), Int(ffirst), big), cond=h_cond, body=h_body, label="blend_hull")
+            state=(Int(0), Int(ffirst), big64), cond=h_cond, body=h_body, label="blend_hull")
         fb, _ = facet_weights(best_h)
         fb = [dr.maximum(x, 0.0) for x in fb]
         fs = sum(fb)
         fb = [x / dr.select(fs > 0, fs, 1.0) for x in fb]
         fids = [dr.gather(Int, fsid, UInt(best_h) * m + j) for j in range(m)]
         ids = [dr.select(outside, fids[j] if j < m else fids[0], ids[j]) for j in range(m + 1)]
-        ws = [dr.select(outside, fb[j] if j < m else Float(0.0), b[j]) for j in range(m + 1)]
+        ws = [Float(dr.select(outside, fb[j] if j < m else F64(0.0), b[j])) for j in range(m + 1)]
 
         dr.eval(ids, ws, z if return_coords else [])
         sl = slice(t0, t0 + Tc)

@@ -66,10 +66,10 @@ def test_weights_valid(toy, model, seed, outside):
 
 
 @SET
-@given(seed=st.integers(0, 2 ** 31))
-def test_float32_agrees_with_float64(toy, model, seed):
+@given(seed=st.integers(0, 2 ** 31), outside=st.sampled_from([1.6, 4.0]))
+def test_float32_agrees_with_float64(toy, model, seed, outside):
     sub, S, params = toy
-    X = targets(sub, params, np.random.default_rng(seed), T=6)
+    X = targets(sub, params, np.random.default_rng(seed), T=6, outside=outside)
     a = model.dense_weights(X, precision="float64")
     b = model.dense_weights(X, precision="float32")
     # float32 carries ~1e-8 m of rounding in the local deformation; a weight moves by at most
@@ -134,7 +134,7 @@ def test_sources_reproduce_themselves(toy, model, precision):
     rec = np.einsum("tfn,nfkc->tfkc", sw.dense(n), D)
     cnt = model.nbhd.count[model.fiducials]
     rms = np.sqrt(np.sum((rec - D) ** 2, axis=(2, 3)) / cnt)
-    assert rms[single].max() < (1e-9 if precision == "float64" else 1e-7)
+    assert rms[single].max() < (1e-9 if precision == "float64" else 5e-7)
     # a merged source differs from its representative by <= 2 dup_tol inside the PCA subspace and by
     # its own PCA residual outside it (<= sqrt(n) x the RMS residual threshold)
     assert rms.max() < 3 * model.params["dup_tol"] + np.sqrt(n) * model.params["residual_threshold"]
