@@ -86,7 +86,7 @@ LINEAR_CONTROLS = (
 )
 
 # lid opening angles (rad) at the middle of the margin for the neutral face
-LID_UP_NEUTRAL = 0.45
+LID_UP_NEUTRAL = 0.41
 LID_LO_NEUTRAL = 0.28
 
 
@@ -260,10 +260,13 @@ class SkinRig:
         B["lip_corner_down"] = d
 
         lipx = gauss(x / 0.017) * front
+        # side-dependent (opening) fields vanish towards the mouth corners
+        taper = smoothstep(1.05 * hw, 0.55 * hw, ax)
+        lipo = lipx * taper
         h_up = np.where(eta > 0.0, soft_ramp((eta - 0.006) / 0.016), 1.0)
         d = np.zeros((n, 3))
-        d[:, 1] = 0.0045 * self.S_up * lipx * h_up
-        d[:, 2] = 0.0012 * self.S_up * lipx * h_up
+        d[:, 1] = 0.0045 * self.S_up * lipo * h_up
+        d[:, 2] = 0.0012 * self.S_up * lipo * h_up
         # alae lift a little
         al = gauss(np.sqrt(((ax - 0.013) / 0.008) ** 2 + ((y + 0.040) / 0.008) ** 2)) * front
         d[:, 1] += 0.0012 * al
@@ -271,8 +274,8 @@ class SkinRig:
 
         h_lo = np.where(eta < 0.0, soft_ramp((-eta - 0.008) / 0.022), 1.0)
         d = np.zeros((n, 3))
-        d[:, 1] = -0.0050 * self.S_lo * lipx * h_lo
-        d[:, 2] = 0.0015 * self.S_lo * lipx * h_lo
+        d[:, 1] = -0.0050 * self.S_lo * lipo * h_lo
+        d[:, 2] = 0.0015 * self.S_lo * lipo * h_lo
         B["lower_lip_down"] = d
 
         L = gauss(x / 0.026) * gauss(eta / 0.013) * front
@@ -285,7 +288,7 @@ class SkinRig:
         d = np.zeros((n, 3))
         d[:, 0] = -0.15 * x * L
         d[:, 2] = 0.0040 * L
-        op = gauss(x / 0.015) * gauss(eta / 0.008) * front
+        op = gauss(x / 0.015) * gauss(eta / 0.008) * front * taper
         d[:, 1] += (0.0030 * self.S_up - 0.0035 * self.S_lo) * op
         d[:, 2] += 0.0015 * op
         B["funnel"] = d
@@ -303,7 +306,7 @@ class SkinRig:
         B["lips_roll_in"] = d
 
         d = np.zeros((n, 3))
-        tx = gauss(x / 0.018) * front
+        tx = gauss(x / 0.018) * front * taper
         tl = self.S_lo * tx * np.where(eta < 0, soft_ramp((-eta - 0.004) / 0.020), 1.0)
         d[:, 1] = 0.0025 * tl
         d[:, 2] = -0.0055 * tl
@@ -318,7 +321,7 @@ class SkinRig:
             d[:, 0] += sgn * 0.0050 * g
             d[:, 1] += -0.0025 * g
             d[:, 2] += -0.0020 * g
-        d[:, 1] += -0.0015 * self.S_lo * lipx * h_lo
+        d[:, 1] += -0.0015 * self.S_lo * lipo * h_lo
         B["mouth_stretch"] = d
 
         for sgn, sfx in ((1.0, "L"), (-1.0, "R")):
@@ -339,7 +342,7 @@ class SkinRig:
         d[:, 1] = 0.0030 * nose * smoothstep(0.014, -0.012, y) * smoothstep(-0.050, -0.035, y)
         al = gauss(np.sqrt(((ax - 0.012) / 0.009) ** 2 + ((y + 0.038) / 0.009) ** 2)) * front
         d[:, 1] += 0.0022 * al
-        d[:, 1] += 0.0012 * self.S_up * lipx * h_up
+        d[:, 1] += 0.0012 * self.S_up * lipo * h_up
         B["nose_wrinkle"] = d
 
         d = np.zeros((n, 3))

@@ -45,6 +45,18 @@ MOUTH_HALF_WIDTH = 0.0245  #: |x| of the mouth corners
 JAW_HINGE = np.array([0.0, -0.012, -0.008])   #: jaw rotation axis: the X axis through this point
 NECK_PIVOT = np.array([0.0, -0.085, -0.025])  #: head-pose rotations turn about this point
 
+#: hairline: height (m) of the hair's edge as a function of |azimuth| about the vertical axis (deg)
+HAIRLINE_DEG = (0, 20, 35, 48, 60, 70, 77, 80, 83, 87, 93, 110, 130, 150, 180)
+HAIRLINE_Y = (0.079, 0.077, 0.069, 0.060, 0.050, 0.042, 0.030, 0.008, 0.006, 0.022, 0.027, 0.024, 0.000,
+              -0.045, -0.068)
+HAIR_THICKNESS = 0.006   #: the hair stands this far off the scalp (short hair)
+
+
+def hairline_y(p):
+    phi = np.degrees(np.abs(np.arctan2(p[..., 0], p[..., 2] - AXIS_Z)))
+    return np.interp(phi, HAIRLINE_DEG, HAIRLINE_Y)
+
+
 # anchor heights for the rows (every meridian crosses them once, from the crown downwards)
 ANCHORS_Y = (0.075, 0.028, Y_EYE, Y_MOUTH)
 
@@ -79,6 +91,15 @@ def sd_ellipsoid(p, c, r, rot=None):
     u = u / r
     k1 = np.sqrt(np.einsum("...k,...k->...", u, u))
     return np.where(k1 > 1e-12, k0 * (k0 - 1.0) / np.maximum(k1, 1e-12), -r.min())
+
+
+def sd_superellipsoid_xz(p, c, r, e=2.6):
+    """Quasi-distance to an ellipsoid whose horizontal (x-z) sections are super-ellipses of exponent
+    ``e`` (flatter front and sides than an ellipse); exact zero set, ~metric near it."""
+    q = (p - np.asarray(c)) / np.asarray(r, float)
+    rxz = (np.abs(q[..., 0]) ** e + np.abs(q[..., 2]) ** e) ** (1.0 / e)
+    k = np.sqrt(rxz * rxz + q[..., 1] ** 2)
+    return (k - 1.0) * float(np.mean(r))
 
 
 def _norm(v):
@@ -137,12 +158,15 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
 
     # cranium and forehead
     d = sd_ellipsoid(p, (0.0, 0.028, -0.014), (0.0745, 0.0955, 0.0990))
-    fore = sd_ellipsoid(p, (0.0, 0.040, 0.002), (0.0640, 0.0520, 0.0880))
+    fore = sd_superellipsoid_xz(p, (0.0, 0.040, 0.002), (0.0630, 0.0520, 0.0880), 2.4)
     d = smin(d, fore, 0.020)
+    # short hair: the scalp inflated by HAIR_THICKNESS above the hairline (edge 4 mm above it)
+    cap = smax(d - HAIR_THICKNESS, hairline_y(p) + 0.004 - y, 0.003)
+    d = smin(d, cap, 0.002)
     # the lower face: a jaw mass that narrows towards the chin
     taper = 1.0 + 0.38 * np.clip((y + 0.040) / 0.070, -1.0, 0.5)
     pj = np.stack([x / taper, y, z], axis=-1)
-    jaw = sd_ellipsoid(pj, (0.0, -0.040, 0.014), (0.0630, 0.0680, 0.0750)) * np.minimum(taper, 1.0)
+    jaw = sd_superellipsoid_xz(pj, (0.0, -0.040, 0.012), (0.0620, 0.0680, 0.0760), 2.5) * np.minimum(taper, 1.0)
     d = smin(d, jaw, 0.020)
     # maxilla / mouth mound
     pb = np.stack([x, y, z + 14.0 * x * x], axis=-1)  # bent along the dental arch
@@ -190,8 +214,8 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
                                           lambda h: 0.0056 + 0.0020 * h))
     d = _local_union(d, p, (0.0, -0.0330, 0.1025), 0.0095, 0.004,
                      lambda q: sd_ellipsoid(q, (0.0, -0.0330, 0.1025), (0.0090, 0.0088, 0.0095)))
-    d = _local_union(d, ps, (0.0128, -0.0400, 0.0880), 0.0085, 0.0045,
-                     lambda q: sd_ellipsoid(q, (0.0128, -0.0400, 0.0880), (0.0068, 0.0060, 0.0085),
+    d = _local_union(d, ps, (0.0122, -0.0400, 0.0870), 0.0085, 0.0065,
+                     lambda q: sd_ellipsoid(q, (0.0122, -0.0400, 0.0870), (0.0062, 0.0056, 0.0080),
                                             rot_y(0.35)))
     d = _local_union(d, ps, (0.0066, -0.0428, 0.0985), 0.0052, 0.0018,
                      lambda q: sd_ellipsoid(q, (0.0066, -0.0428, 0.0985), (0.0033, 0.0019, 0.0050),

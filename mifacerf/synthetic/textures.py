@@ -195,11 +195,7 @@ def vermilion_mask(P, hw=H.MOUTH_HALF_WIDTH):
 
 def hair_mask(P, seed=3):
     """Short scalp hair above an irregular hairline (with sideburns)."""
-    phi = np.degrees(np.abs(head_azimuth(P)))
-    kn = [0, 20, 35, 48, 60, 70, 77, 80, 83, 87, 93, 110, 130, 150, 180]
-    yh = [0.079, 0.077, 0.069, 0.060, 0.050, 0.042, 0.030, 0.008, 0.006, 0.022, 0.027, 0.024, 0.000,
-          -0.045, -0.068]
-    hl = np.interp(phi, kn, yh)
+    hl = H.hairline_y(P)
     jitter = (fbm(P, 0.006, 3, seed) - 0.5) * 0.006
     return smoothstep(-0.002, 0.003, P[:, 1] - hl + jitter)
 
@@ -250,7 +246,7 @@ def _families():
         "forehead",
         lambda P: gauss(P[:, 0] / 0.036) * smoothstep(0.028, 0.040, P[:, 1]) * smoothstep(0.082, 0.068, P[:, 1]) * front(P),
         lambda P: (P[:, 1] + 0.0012 * np.sin(P[:, 0] / 0.011) + 0.0007 * np.sin(P[:, 0] / 0.0047 + 1.3)) / 0.0040,
-        0.00040))
+        0.00050, gain=9.0))
     fam.append(Family(
         "glabella",
         lambda P: gauss(P[:, 0] / 0.009) * gauss((P[:, 1] - 0.022) / 0.009) * front(P),
@@ -409,7 +405,7 @@ class SkinTextures:
             ce = H.EYE_CENTRE * np.array([sgn, 1, 1])
             d = np.linalg.norm(P - ce, axis=1)
             lid = smoothstep(0.024, 0.015, d)
-            col *= (1.0 - lid[:, None] * np.array([0.06, 0.12, 0.08]))
+            col *= (1.0 - lid[:, None] * np.array([0.03, 0.07, 0.05]))
         # freckles: sparse small spots over the nose and cheeks
         fr = value_noise(P, 0.0016, 21)
         fz = gauss(np.hypot(x / 0.05, (y + 0.01) / 0.035)) * (z > 0.05)
@@ -450,7 +446,7 @@ class SkinTextures:
             rough = rough * (1 - cov) + 0.40 * cov
         # fine bumps (pores / orange-peel): slopes in the tangent frame
         s, t, n = self.frame
-        g = 0.000020 * value_noise(P, 0.0009, 61, grad=True)[1] + 0.000012 * value_noise(P, 0.0004, 62, grad=True)[1]
+        g = 0.000012 * value_noise(P, 0.0010, 61, grad=True)[1] + 0.000004 * value_noise(P, 0.0005, 62, grad=True)[1]
         slopes = np.stack([np.einsum("ij,ij->i", g, s), np.einsum("ij,ij->i", g, t)], 1)
         slopes *= (1.0 - 0.7 * hm)[:, None]
         albedo = np.zeros((n_all, 3), np.float32)
