@@ -66,15 +66,43 @@ class MeshScene:
         n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
-    def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False) -> Hits:
+    def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False,
+              max_layers: int = 4) -> Hits:
         """Closest hits of rays (origins (N, 3) or (3,), unit directions (N, 3)), world frame.
 
-        ``cull_back``: a closest hit on a back-facing triangle (seen from behind, e.g. the inside of
-        the template through the eye or mouth opening) counts as no hit.
+        ``cull_back``: back-facing triangles (seen from behind, e.g. the inside of the template
+        through the eye or mouth opening) are passed through: the ray continues to the next
+        surface (up to ``max_layers`` back faces).
         """
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        o = np.broadcast_to(np.asarray(origins, np.float64), d.shape).copy()
+        hits = self._trace_once(o, d)
+        if not cull_back:
+            return hits
+        normals = self.face_normals()
+        offset = np.zeros(len(d))
+        todo = np.arange(len(d))
+        for _ in range(max_layers):
+            v = hits.valid[todo]
+            back = np.zeros(len(todo), bool)
+            back[v] = np.einsum("nd,nd->n", normals[hits.tri[todo[v]]], d[todo[v]]) > 0
+            if not back.any():
+                break
+            todo = todo[back]
+            offset[todo] += hits.t[todo] + 1e-5
+            again = self._trace_once(o[todo] + offset[todo, None] * d[todo], d[todo])
+            hits.valid[todo], hits.tri[todo], hits.bary[todo] = again.valid, again.tri, again.bary
+            hits.t[todo] = np.where(again.valid, again.t + offset[todo], np.inf)
+        else:  # still behind back faces after max_layers: no hit
+            v = hits.valid[todo]
+            back = np.zeros(len(todo), bool)
+            back[v] = np.einsum("nd,nd->n", normals[hits.tri[todo[v]]], d[todo[v]]) > 0
+            bad = todo[back]
+            hits.valid[bad], hits.tri[bad], hits.bary[bad], hits.t[bad] = False, -1, 0.0, np.inf
+        return hits
+
+    def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
         mi = self._mi
-        d = np.asarray(directions, np.float32).reshape(-1, 3)
-        o = np.broadcast_to(np.asarray(origins, np.float32), d.shape)
         ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
         pi = self.scene.ray_intersect_preliminary(ray)
         valid = np.asarray(pi.is_valid()).astype(bool)
@@ -82,12 +110,7 @@ class MeshScene:
         tri = np.where(valid, np.asarray(pi.prim_index).astype(np.int64), -1)
         bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
         bary[~valid] = 0.0
-        t = np.where(valid, np.asarray(pi.t), np.inf)
-        if cull_back and valid.any():
-            back = np.zeros_like(valid)
-            back[valid] = np.einsum("nd,nd->n", self.face_normals()[tri[valid]], d[valid]) > 0
-            valid &= ~back
-            tri[back], bary[back], t[back] = -1, 0.0, np.inf
+        t = np.where(valid, np.asarray(pi.t), np.inf).astype(np.float64)
         return Hits(valid, tri, bary, t)
 
     def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:

@@ -20,7 +20,9 @@ environment: ``F_schlick(n·v) · E_blur(reflect(−v, n)) · V``.
 
 Geometry: eyes are spheres (template centre and radius; registration gives each
 expression's centres; rotation = the head's), teeth the template's strips (two triangles
-per tooth) moved by each expression's rigid teeth transforms.
+per tooth) moved by each expression's rigid teeth transforms. The mouth's interior, seen
+through the open lips, is a backdrop sphere behind the teeth, rigid with the head and
+rendered like the teeth from their reference expression.
 """
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ from ..jitarrays import to_jit
 from ..variant import ensure_variant
 from .frame import CAM_PARAMS, camera_params
 
-PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower")
+PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower", "mouth_interior")
 CORNEA_F0 = 0.025  # (n − 1)² / (n + 1)² for the cornea, n ≈ 1.376
 
 
@@ -52,6 +54,12 @@ def part_meshes(template: dict) -> dict:
         t = (template.get("teeth") or {}).get(key)
         if t:
             out[part] = (np.asarray(t["vertices"], np.float64), np.asarray(t["triangles"], np.int64))
+    if "teeth_upper" in out:  # the mouth's interior: a backdrop 1 cm behind the front teeth
+        teeth = np.concatenate([out[p][0] for p in ("teeth_upper", "teeth_lower") if p in out])
+        radius = 0.045
+        front = teeth[:, 2].max()
+        centre = np.array([teeth[:, 0].mean(), teeth[:, 1].mean(), front - 0.012 - radius])
+        out["mouth_interior"] = sphere_mesh(centre, radius, subdivisions=3)
     return out
 
 
@@ -69,6 +77,8 @@ def part_transforms(template: dict, eye_centres: np.ndarray, teeth: np.ndarray, 
     for i, part in enumerate(("teeth_upper", "teeth_lower")):
         if np.isfinite(teeth[i]).all():
             out[part] = np.asarray(teeth[i], np.float64)
+    if "teeth_upper" in out:
+        out["mouth_interior"] = out["teeth_upper"]  # rigid with the skull
     return out
 
 
@@ -322,7 +332,7 @@ def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, camera
     meshes = part_meshes(template)
     if not meshes:
         return {}
-    groups = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower")}
+    groups = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower", "mouth_interior")}
     wanted: dict[str, list] = {}
     for group, ref in references.items():
         wanted.setdefault(ref, []).extend(p for p in groups[group] if p in meshes)
@@ -416,7 +426,7 @@ def target_parts_from_mesh(model, mesh: np.ndarray) -> dict:
         H[:3, :3], H[:3, 3] = R, t
     else:
         H = np.eye(4)
-    for p in ("eye_left", "eye_right", "teeth_upper"):
+    for p in ("eye_left", "eye_right", "teeth_upper", "mouth_interior"):
         if p in base:
             out[p] = H @ base[p]
     jaw_ids = np.flatnonzero(kinds == "lip_lower")

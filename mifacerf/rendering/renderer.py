@@ -276,8 +276,15 @@ class Renderer:
             col, cov = pf.shade(self._combined.scene.scene, to_jit(mi.UInt32, label.astype(np.uint32)),
                                 to_jit(mi.Point3f, q.T), to_jit(mi.Point3f, p_world.T),
                                 to_jit(mi.Vector3f, normal.T), to_jit(mi.Vector3f, view.T))
-            colour[pt] = from_jit(col)
-            covered[pt] = np.asarray(cov).astype(bool)
+            col, cov = from_jit(col), np.asarray(cov).astype(bool)
+            # part points that no reference view saw (e.g. the mouth's back hidden by the lips in the
+            # reference): the part's mean colour in this frame, so the plate never shows through
+            for k in np.unique(label):
+                sel = label == k
+                fill = col[sel & cov].mean(axis=0) if (sel & cov).any() else np.zeros(3)
+                col[sel & ~cov] = fill
+            colour[pt] = col
+            covered[pt] = True
             stats.add_time("eyes_teeth", time.perf_counter() - t0)
         stats.unseen_samples += int((~covered).sum())
 
