@@ -158,7 +158,8 @@ def auto_coarse_triangles(P: np.ndarray) -> np.ndarray:
     pts = np.stack([az, (P[:, 1] - c[1]) / 0.1], 1)
     tri = Delaunay(pts).simplices
     # drop slivers along the hull
-    a = np.abs(np.cross(pts[tri[:, 1]] - pts[tri[:, 0]], pts[tri[:, 2]] - pts[tri[:, 0]]))
+    e1, e2 = pts[tri[:, 1]] - pts[tri[:, 0]], pts[tri[:, 2]] - pts[tri[:, 0]]
+    a = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     L = np.max([np.linalg.norm(pts[tri[:, i]] - pts[tri[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=0)
     return tri[a / np.maximum(L ** 2, 1e-12) > 0.05]
 

@@ -142,8 +142,7 @@ class Registrar:
                    "inconsistent_clicks": []}
         known = {}
         if cc is None:
-            flags.append("no coarse points for this expression (hand/coarse_points.json): initial estimate "
-                         "is the most similar registered expression, unmorphed")
+            flags.append("no coarse points for this expression (hand/coarse_points.json): no coarse morph")
             summary["missing"] = self.tpl.coarse.tolist()
             return known, summary
         for vid in self.tpl.coarse:
@@ -315,6 +314,11 @@ class Registrar:
                           "(forehead, nose)",
                 "refinement_deg": round(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))), 4)}
             return T
+        if len(both) < 3:
+            e.flags.append("head pose: no ear / nose-bridge points and fewer than three registered fiducials; "
+                           "identity (predicted)")
+            e.report["head_pose"] = {"source": "none (identity, predicted)"}
+            return np.eye(4)
         e.flags.append(f"head pose: ear / nose-bridge points missing ({sorted(set(HEAD) - set(common))}); "
                        "fitted rigidly to the most rigid third of the registered fiducials instead")
         e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no ear / nose marks)"}
@@ -452,12 +456,12 @@ class Registrar:
         if usable.sum() < 3 or tris_ok == 0:
             # no coarse mesh: the most similar expression by whatever coarse points exist, else the neutral
             e.flags.append("coarse mesh unusable (fewer than three coarse points / no complete triangle): "
-                           "initial estimate = neutral, rigidly aligned to the known points, wider search")
+                           "initial estimate = neutral (rigidly aligned to the known points if ≥ 3)")
             pred = N.vertices.copy()
             if usable.sum() >= 3:
                 Tr = ET.rigid_from_points(N.vertices[coarse[usable]], cN[usable])
                 pred = ET.apply(Tr, pred)
-            return pred, np.zeros(len(pred), int), [self.neutral], 2 * o.radius_px
+            return pred, np.zeros(len(pred), int), [self.neutral], o.radius_px
         cn = N.vertices[coarse]
         D = np.stack([deformation_distances(cn, self.registered[r].vertices[coarse], cN, self.coarse_nbhds)
                       for r in regs])

@@ -217,9 +217,10 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
     ks = strength[kid[snapped[kid]]] if kid.size else np.zeros(0)
     if ks.size:
         t0 = float(np.max(ks))
-    else:  # no known dot: start from the strongest predictions
+    else:  # no known dot: start from the strongest dot found from the predictions
         r = snap(views, pred[is_target], vis[:, is_target], radius, step, max_reproj)
-        t0 = float(np.max(r.strength, initial=len(views.cams)))
+        attempts += int(is_target.sum())
+        t0 = float(np.max(np.where(r.ok, r.strength, 0.0), initial=0.0)) or float(len(views.cams))
     t_floor = max(floor * t0, min_strength)
     schedule = []
     last_start = np.full((T, 3), np.nan)
@@ -233,11 +234,15 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         schedule.append(t)
         n_acc = 0
         while True:
-            border = np.array([v for v in np.flatnonzero(is_target & ~in_S)
-                               if in_S[neighbours[v]].any()], np.int64)
+            if in_S.any():
+                border = np.array([v for v in np.flatnonzero(is_target & ~in_S)
+                                   if in_S[neighbours[v]].any()], np.int64)
+            else:   # nothing known: seed with the strongest dots found from their predictions
+                border = np.flatnonzero(is_target)
             if border.size == 0:
                 break
-            off = np.stack([np.nanmean(offset[neighbours[v][in_S[neighbours[v]]]], axis=0) for v in border])
+            off = np.stack([np.nanmean(offset[neighbours[v][in_S[neighbours[v]]]], axis=0)
+                            if in_S[neighbours[v]].any() else np.zeros(3) for v in border])
             start = pred[border] + off
             redo = ~(np.linalg.norm(start - last_start[border], axis=1) < 0.1 * step)
             if redo.any():
