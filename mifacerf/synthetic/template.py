@@ -320,39 +320,49 @@ def marked_vertices(neutral):
     return out
 
 
-def flip_improve(P3, X2, T, max_passes=30):
+def flip_improve(P3, X2, T, max_passes=60):
     """Intrinsic-Delaunay edge flips on 3-D positions: flip an interior edge when the two angles
     opposite it sum to more than π, if the flipped pair is valid (positive area in the 2-D chart
-    ``X2``, no fold in 3-D). Boundary (hole and outer) edges never flip; orientation is kept."""
+    ``X2``, no fold in 3-D). Boundary (hole and outer) edges never flip; orientation is kept.
+    Each sweep flips non-adjacent edges in one go; sweeps repeat until none applies."""
     T = np.array(T, int)
+
+    def angle(p, a, b):
+        u, v = a - p, b - p
+        c = np.einsum("ij,ij->i", u, v) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1) + 1e-30)
+        return np.arccos(np.clip(c, -1.0, 1.0))
+
     for _ in range(max_passes):
-        edges = {}
-        for t, (a, b, c) in enumerate(T):
-            for u, v, w in ((a, b, c), (b, c, a), (c, a, b)):
-                edges[(u, v)] = (t, w)
+        # directed edges -> (triangle, opposite vertex)
+        e_u = T.ravel()
+        e_v = np.roll(T, -1, axis=1).ravel()
+        opp = np.roll(T, -2, axis=1).ravel()
+        tri = np.repeat(np.arange(len(T)), 3)
+        key = {(int(u), int(v)): i for i, (u, v) in enumerate(zip(e_u, e_v))}
+        i1, i2 = [], []
+        for i, (u, v) in enumerate(zip(e_u, e_v)):
+            j = key.get((int(v), int(u)))
+            if j is not None and u < v:
+                i1.append(i)
+                i2.append(j)
+        i1, i2 = np.array(i1, int), np.array(i2, int)
+        u, v, c, d = e_u[i1], e_v[i1], opp[i1], opp[i2]
+        tot = angle(P3[c], P3[u], P3[v]) + angle(P3[d], P3[u], P3[v])
+        order = np.nonzero(tot > np.pi + 1e-9)[0]
+        order = order[np.argsort(-tot[order])]      # worst first
+        if len(order) == 0:
+            break
+        touched = np.zeros(len(T), bool)
         flipped = 0
-        done = set()
-        for (u, v), (t1, c) in list(edges.items()):
-            if (v, u) not in edges or (min(u, v), max(u, v)) in done:
+        for k in order:
+            t1, t2 = tri[i1[k]], tri[i2[k]]
+            if touched[t1] or touched[t2]:
                 continue
-            t2, d = edges[(v, u)]
-            if t1 == t2:
-                continue
-            done.add((min(u, v), max(u, v)))
-            if set(T[t1]) != {u, v, c} or set(T[t2]) != {u, v, d}:
-                continue
+            uu, vv, cc, dd = int(u[k]), int(v[k]), int(c[k]), int(d[k])
+            n1, n2 = (uu, dd, cc), (dd, vv, cc)       # quad u-d-v-c, counter-clockwise
 
-            def ang(p, q, r):
-                a1, b1 = P3[q] - p, P3[r] - p
-                return np.arccos(np.clip(a1 @ b1 / (np.linalg.norm(a1) * np.linalg.norm(b1) + 1e-30), -1, 1))
-
-            if ang(P3[c], u, v) + ang(P3[d], u, v) <= np.pi + 1e-9:
-                continue
-            n1 = (u, d, c)   # quad u-d-v-c, CCW
-            n2 = (d, v, c)
-
-            def area2(tri):
-                p = X2[list(tri)]
+            def area2(tr):
+                p = X2[list(tr)]
                 return (p[1, 0] - p[0, 0]) * (p[2, 1] - p[0, 1]) - (p[1, 1] - p[0, 1]) * (p[2, 0] - p[0, 0])
 
             if area2(n1) <= 0 or area2(n2) <= 0:
@@ -361,25 +371,17 @@ def flip_improve(P3, X2, T, max_passes=30):
             nn2 = np.cross(P3[n2[1]] - P3[n2[0]], P3[n2[2]] - P3[n2[0]])
             if nn1 @ nn2 <= 0:
                 continue
-            T[t1] = n1
-            T[t2] = n2
+            T[t1], T[t2] = n1, n2
+            touched[t1] = touched[t2] = True
             flipped += 1
-            # the edge map is stale now: restart the pass
-            break
         if not flipped:
-            # no flip in a full sweep
             break
     return T
 
 
-def improve(P3, X2, T, passes=400):
-    """Repeat single flips until none applies (small meshes only)."""
-    for _ in range(passes):
-        T2 = flip_improve(P3, X2, T, max_passes=1)
-        if np.array_equal(T2, T):
-            break
-        T = T2
-    return T
+def improve(P3, X2, T):
+    """:func:`flip_improve` (kept as the public name used by the mesh subject)."""
+    return flip_improve(P3, X2, T)
 
 
 def build_template(subj) -> Template:
