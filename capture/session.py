@@ -171,6 +171,8 @@ class SessionReport:
     takes: int = 0
     takes_rejected: int = 0
     takes_blurred: int = 0
+    takes_moved: int = 0           # simulation only: takes in which motion was injected (operator notes)
+    moved_and_caught: int = 0      # ... and of those, how many the motion check rejected
     runs: int = 0
     refire_runs: int = 0
     frames_written: int = 0
@@ -230,14 +232,18 @@ def summarize(records: list[dict]) -> SessionReport:
                 link[k] = link.get(k, 0) + v
     rep.link = link
     rep.images = sum(len(c) for c in st.complete.values())
+    moved = {(r["expression"], r["take"]) for r in records
+             if r["event"] == "operator_note" and r.get("simulated_motion_mm", 0) > 0}
+    blurred = {(r["expression"], r["take"]) for r in records if r["event"] == "motion" and r.get("blurred")}
+    rep.takes_moved, rep.moved_and_caught = len(moved), len(moved & blurred)
     return rep
 
 
 class Operator:
     """Talks to the subject and the operator. The default prints; the simulation's poses the subject."""
 
-    def prompt(self, expression: ExpressionEntry, take: int, sitting: int) -> None:
-        """Ask the subject to hold ``expression`` (return when ready)."""
+    def prompt(self, expression: ExpressionEntry, take: int, sitting: int) -> dict | None:
+        """Ask the subject to hold ``expression``; return when ready, optionally with a note for the journal."""
 
     def say(self, message: str) -> None:
         pass
@@ -537,7 +543,9 @@ class CaptureSession:
             if self._missing(take):
                 self._log("sitting", expression=e, take=take.number, sitting=take.sittings)
                 self.progress(f"{e}: take {take.number}" + (f", sitting {take.sittings}" if take.sittings > 1 else ""))
-                self.operator.prompt(expr, take.number, take.sittings - 1)
+                note = self.operator.prompt(expr, take.number, take.sittings - 1)
+                if note:  # whatever the operator wants on record (the simulation: the motion it injected)
+                    self._log("operator_note", expression=e, take=take.number, **note)
                 self._fill(take)
             self._judge(take)
 
@@ -573,8 +581,8 @@ class CaptureSession:
         events = []
         reset = None
         try:
-            self.controller.load(seq)
             self.cameras.start(len(seq))
+            self.controller.load(seq)
             events = self.controller.run(seq).events
         except DeviceReset as exc:
             events, reset = exc.events, exc
@@ -583,12 +591,12 @@ class CaptureSession:
         except (ControllerTimeout, CommandRefused, ControllerError) as exc:
             self._log("controller_error", expression=e, take=take.number, error=str(exc), kind=type(exc).__name__)
             try:  # the frames of this run cannot be matched to lights without the events: collected and dropped
-                self.cameras.collect(timeout=0.5)
+                self.cameras.collect(timeout=0.5, expected=0)
             except Exception:  # noqa: BLE001
                 pass
             self._reconnect(str(exc))
             return
-        frames = self.cameras.collect(timeout=max(2.0, 2 * seq.duration_s))
+        frames = self.cameras.collect(timeout=max(2.0, 2 * seq.duration_s), expected=len(events))
         seq_lights = seq.lights
         misfired, missing_frames = [], 0
         by_cam = {c: {f.trigger: f for f in fl} for c, fl in frames.items()}

@@ -1,0 +1,1 @@
+"""Light-stage hardware: strobe-controller protocol and driver, strobe sequences, camera interface."""

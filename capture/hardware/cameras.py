@@ -56,8 +56,12 @@ class CameraSystem(abc.ABC):
         """Arm every camera for the next ``n_triggers`` triggers."""
 
     @abc.abstractmethod
-    def collect(self, timeout: float = 10.0) -> dict[str, list[Frame]]:
-        """The frames recorded since :meth:`start`, per camera name (any order; match by ``trigger``)."""
+    def collect(self, timeout: float = 10.0, expected: int | None = None) -> dict[str, list[Frame]]:
+        """The frames recorded since :meth:`start`, per camera name (any order; match by ``trigger``).
+
+        Waits up to ``timeout`` seconds for ``expected`` triggers' frames (default: the number
+        given to :meth:`start`); the controller says how many triggers it actually sent.
+        """
 
     def close(self) -> None:
         """Release the cameras."""

@@ -40,10 +40,13 @@ def facing_pose(board: BoardSpec, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, n
 
 
 def board_poses(board: BoardSpec, n: int = 12, seed: int = 0, tilt_deg: float = 35.0, roll_deg: float = 20.0,
-                offset: float = 0.05, centre=(0.0, 0.0, 0.04)) -> list[tuple[np.ndarray, np.ndarray]]:
+                offset: float = 0.04, depth: float = 0.15,
+                centre=(0.0, 0.0, 0.04)) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n`` board poses (R, t), board -> world: the first :func:`facing_pose` at the origin, the
-    rest tilted up to ``tilt_deg`` about X and Y, rolled up to ``roll_deg`` and moved up to
-    ``offset`` metres about ``centre``."""
+    rest tilted up to ``tilt_deg`` about X and Y, rolled up to ``roll_deg``, moved up to
+    ``offset`` metres sideways and ``depth`` metres towards or away from the cameras about
+    ``centre``. The depth changes matter: with narrow zoom lenses they are what separates a
+    camera's focal length from its distance."""
     rng = np.random.default_rng(seed)
     out = [facing_pose(board)]
     w, h = board.size
@@ -58,7 +61,7 @@ def board_poses(board: BoardSpec, n: int = 12, seed: int = 0, tilt_deg: float = 
             ax *= 0.3
         az = np.radians(roll_deg) * rng.uniform(-1, 1)
         R = rotation([0, 1, 0], ay) @ rotation([1, 0, 0], ax) @ rotation([0, 0, 1], az) @ R0
-        c = np.asarray(centre) + offset * rng.uniform(-1, 1, 3) * np.array([1.0, 1.0, 0.6])
+        c = np.asarray(centre) + np.r_[offset * rng.uniform(-1, 1, 2), depth * rng.uniform(-1, 1)]
         t = c - R @ np.array([w / 2, h / 2, 0.0])
         out.append((R, t))
     return out

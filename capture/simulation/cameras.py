@@ -204,12 +204,13 @@ class SyntheticCameras(CameraSystem):
             self._triggers = []
             self._armed = int(n_triggers)
 
-    def collect(self, timeout: float = 10.0) -> dict[str, list[Frame]]:
+    def collect(self, timeout: float = 10.0, expected: int | None = None) -> dict[str, list[Frame]]:
         deadline = time.monotonic() + timeout
+        want = self._armed if expected is None else min(expected, self._armed)
         while True:  # triggers come from the controller's thread; the run is over when we are called
             with self._lock:
                 trig = list(self._triggers)
-            if len(trig) >= self._armed or time.monotonic() >= deadline:
+            if len(trig) >= want or time.monotonic() >= deadline:
                 break
             time.sleep(0.01)
         out: dict[str, list[Frame]] = {}

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
+
 from ...rig import Rig
 from ..session import Operator
 from .cameras import CameraFaults, SensorModel, SimulatedSubject, SyntheticCameras
@@ -56,8 +58,9 @@ class SimOperator(Operator):
         self.subject = subject
         self._say = say
 
-    def prompt(self, expression, take: int, sitting: int) -> None:
+    def prompt(self, expression, take: int, sitting: int) -> dict:
         self.subject.assume(expression.name, take, sitting)
+        return {"simulated_motion_mm": round(float(np.linalg.norm(self.subject.drift)) * 1000, 3)}
 
     def say(self, message: str) -> None:
         if self._say:

@@ -72,7 +72,7 @@ def test_blurred_take_is_repeated_and_kept(tmp_path, rig):
     s = new_session(tmp_path / "cap", rig, 3)
     rep, lab = run_lab(s, LabOptions(force_motion=[["smile", 1]], motion_mm=12.0))
     root = tmp_path / "cap"
-    assert rep.complete and rep.takes_blurred == 1
+    assert rep.complete and rep.takes_blurred == 1 and rep.takes_moved == rep.moved_and_caught == 1
     rejected = [r for r in events(root, "take_end") if r["status"] == "rejected" and r["expression"] == "smile"]
     assert len(rejected) == 1 and rejected[0]["take"] == 1 and "motion" in rejected[0]["reason"]
     verdicts = {(r["expression"], r["take"]): r for r in events(root, "motion")}
