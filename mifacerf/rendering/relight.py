@@ -28,13 +28,14 @@ def to_device_f16(array: np.ndarray):
 
 
 def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndarray, coef: np.ndarray,
-               lighting: np.ndarray) -> np.ndarray:
+               lighting: np.ndarray, light_ids: np.ndarray | None = None) -> np.ndarray:
     """Lit colour (N, 3) of ``texels`` (N,) rows of a field.
 
     ``rf_device``: the field's (rows, L, 3) reflectance functions as a flat Dr.Jit Float16
     array (:func:`to_device_f16`); ``vertex_ids`` (N, 3) and ``coef`` (N, 3) the texels'
-    triangle vertices and normalised weights ĉ; ``lighting`` (V, L, 3) per-vertex
-    light-stage weights.
+    triangle vertices and normalised weights ĉ; ``lighting`` (V, K, 3) per-vertex
+    light-stage weights of the lights ``light_ids`` (K,) (default: all L lights, K = L) —
+    the lights whose weight is negligible everywhere can be left out of the sum.
     """
     import drjit as dr
 
@@ -44,20 +45,25 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
         return np.zeros((0, 3), np.float32)
     F16 = type(rf_device)
     Float, UInt32 = mi.Float, mi.UInt32
+    ids = np.arange(n_lights) if light_ids is None else np.asarray(light_ids)
+    k = len(ids)
     stride = n_lights * 3
     base_f = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(stride))
-    base_v = [to_jit(UInt32, np.asarray(vertex_ids[:, k], np.uint32) * np.uint32(stride)) for k in range(3)]
-    cf = [to_jit(Float, coef[:, k]) for k in range(3)]
+    base_v = [to_jit(UInt32, np.asarray(vertex_ids[:, j], np.uint32) * np.uint32(k * 3)) for j in range(3)]
+    cf = [to_jit(Float, coef[:, j]) for j in range(3)]
     light = to_jit(Float, np.asarray(lighting).reshape(-1))
+    ids_dev = to_jit(UInt32, np.append(ids, 0).astype(np.uint32))  # padded: never a width-1 (literal) array
+    count = dr.opaque(UInt32, k)
 
     def cond(i, r, g, b):
-        return i < n_lights
+        return i < count
 
     def body(i, r, g, b):
         o = i * 3
+        of = dr.gather(UInt32, ids_dev, i) * 3
         acc = [r, g, b]
         for ch in range(3):
-            f = Float(dr.gather(F16, rf_device, base_f + o + ch))
+            f = Float(dr.gather(F16, rf_device, base_f + of + ch))
             lam = (cf[0] * dr.gather(Float, light, base_v[0] + o + ch)
                    + cf[1] * dr.gather(Float, light, base_v[1] + o + ch)
                    + cf[2] * dr.gather(Float, light, base_v[2] + o + ch))

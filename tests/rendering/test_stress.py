@@ -108,3 +108,29 @@ def test_long_animation_has_no_drift(toy_model):
     assert np.isfinite(state).all()
     again = r.render(m.vertices[1], W, m.cameras[2], env, spp=1)
     np.testing.assert_array_equal(first, again)
+
+
+def test_skipped_lights_and_cached_frames(toy_model):
+    """Skip what a scene does not need: negligible lights leave the image within tolerance; an unchanged
+    frame comes from the cache, a changed one does not."""
+    from mifacerf.camera import ring_camera
+    from mifacerf.rendering.renderer import Renderer, RenderStats
+
+    m = toy_model
+    data = np.full((32, 64, 3), 0.3, np.float32)
+    data[16:] = 1e-7  # the lower hemisphere is (almost) black
+    env = E.Environment(data, "upper")
+    W = np.zeros((m.n_vertices, 2))
+    W[:, 0] = 1
+    full = Renderer(m, light_epsilon=0).render(m.vertices[0], W, m.cameras[1], env, spp=1)
+    r = Renderer(m, light_epsilon=1e-4)
+    st = RenderStats()
+    fast = r.render(m.vertices[0], W, m.cameras[1], env, spp=1, stats=st)
+    assert st.lights_skipped > 5
+    assert np.abs(fast - full).max() <= 1e-4 * max(full.max(), 1e-6) * 10  # stated tolerance: 1e-3 of the peak
+    st2 = RenderStats()
+    again = r.render(m.vertices[0], W, m.cameras[1], env, spp=1, stats=st2)
+    assert st2.cached and np.array_equal(again, fast)
+    st3 = RenderStats()
+    r.render(m.vertices[0], W, ring_camera(m.cameras, 5.0, 0.0), env, spp=1, stats=st3)
+    assert not st3.cached
