@@ -21,6 +21,9 @@ same Dr.Jit kernel as the Python API.
      - string — optional path of a .ply/.npy target mesh in the template's topology (§5 weights)
    * - face
      - string — id of the face shape (default ``face``); its vertices must be the target's
+   * - (parts)
+     - shapes with ids ``eye_left``, ``eye_right``, ``teeth_upper``, ``teeth_lower``, ``mouth_interior``
+       (written by :mod:`mifacerf.rendering.scenefile`) are shaded as §6.3's eyes and teeth
    * - environment
      - string — optional generated name or lat-long file; default: the scene's infinite emitter
    * - (nested)
@@ -104,7 +107,30 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         camera = camera_from_sensor(sensor)
         self.stats = RenderStats()
         plan = plan_frame(self.face.model, target, W, camera)
-        self.frame = self.face.renderer.light_frame(plan, _environment_of(scene, self.env_spec), self.stats)
+        env = _environment_of(scene, self.env_spec)
+        self.frame = self.face.renderer.light_frame(plan, env, self.stats)
+        # eyes, teeth and the mouth's interior: shapes with the parts' names, if the scene has them
+        from mifacerf.rendering.parts import PARTS
+        from mifacerf.jitarrays import to_jit
+
+        parts = self.face.parts(mesh=target) if self.target_path else self.face.parts(
+            self.expression or self.face.model.neutral)
+        by_id = {s.id(): s for s in scene.shapes()}
+        self.part_shapes = [(PARTS.index(p), by_id[p]) for p in PARTS if p in by_id and p in parts]
+        self.part_frame = None
+        if self.part_shapes:
+            self.part_frame = self.face.renderer.part_frame(parts, camera, self.face.renderer.light_basis(env),
+                                                            self.stats)
+            inv = np.zeros((len(PARTS), 16))
+            centres = np.zeros((len(PARTS), 3))
+            tmpl = self.face.model.template
+            for p, T in parts.items():
+                k = PARTS.index(p)
+                inv[k] = np.linalg.inv(T).reshape(-1)
+                if p.startswith("eye"):
+                    centres[k] = T[:3, :3] @ np.asarray(tmpl["eyes"][p]["centre"], np.float64) + T[:3, 3]
+            self._part_inv = to_jit(mi.Float, inv.reshape(-1))
+            self._part_centre = to_jit(mi.Float, centres.reshape(-1))
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         s = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
@@ -118,6 +144,22 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         tri = dr.select(on_face, si.prim_index, 0)
         bary = self.frame.barycentric(tri, si.p)
         colour, covered, _ = self.frame.shade(tri, bary, on_face)
+        on_part = mi.Bool(False)
+        part = mi.UInt32(0)
+        for k, shape in self.part_shapes:
+            hit = active & si.is_valid() & (si.shape == mi.ShapePtr(shape))
+            part = dr.select(hit, k, part)
+            on_part |= hit
+        if self.part_shapes:
+            M = [dr.gather(mi.Float, self._part_inv, part * 16 + e, on_part) for e in range(12)]
+            p = si.p
+            q = mi.Point3f(*[M[4 * r] * p.x + M[4 * r + 1] * p.y + M[4 * r + 2] * p.z + M[4 * r + 3] for r in range(3)])
+            c = mi.Point3f(*[dr.gather(mi.Float, self._part_centre, part * 3 + d, on_part) for d in range(3)])
+            n = dr.select(part < 2, dr.normalize(p - c), si.n)
+            pcol, pcov = self.part_frame.shade(scene, part, q, p, n, -ray.d, on_part)
+            colour = dr.select(on_part, pcol, colour)
+            covered = dr.select(on_part, True, covered)
+            on_face |= on_part
         other, valid, aovs = self.nested.sample(scene, sampler, ray, medium, active & ~on_face)
         result = dr.select(on_face, mi.Spectrum(colour), other)
         return result, dr.select(on_face, covered, valid), aovs

@@ -7,6 +7,9 @@ topology, in vertex order, no texture coordinates) to a PLY, and loads the scene
 ``face_mesh`` set to it. In the scene, the face is::
 
     <shape type="ply" id="face"><string name="filename" value="$face_mesh"/></shape>
+
+and its eyes, teeth and mouth interior are shapes with those ids (``eye_left``,
+``eye_right``, ``teeth_upper``, ``teeth_lower``, ``mouth_interior``) from ``$eye_left_mesh`` …
 """
 from __future__ import annotations
 
@@ -69,9 +72,22 @@ def load_scene_file(xml_path, params: dict | None = None):
         vertices, _ = face.target(mesh=read_target_mesh(target))  # validates topology and values
     else:
         vertices, _ = face.target(values.get("expression") or face.model.neutral)
-    tmp = Path(tempfile.mkdtemp(prefix="mifacerf-scene-")) / "face.ply"
-    write_target_mesh(tmp, vertices, face.model.triangles)
-    values["face_mesh"] = str(tmp)
+    folder = Path(tempfile.mkdtemp(prefix="mifacerf-scene-"))
+    write_target_mesh(folder / "face.ply", vertices, face.model.triangles)
+    values["face_mesh"] = str(folder / "face.ply")
+    # eyes, teeth, mouth interior, posed for the target (a part the model lacks: a speck far away)
+    from .parts import PARTS, apply, part_meshes
+
+    parts = face.parts(mesh=vertices) if target else face.parts(values.get("expression") or face.model.neutral)
+    meshes = part_meshes(face.model.template)
+    for p in PARTS:
+        path = folder / f"{p}.ply"
+        if p in meshes and p in parts:
+            write_target_mesh(path, apply(parts[p], meshes[p][0]), meshes[p][1])
+        else:
+            write_target_mesh(path, np.array([[1e3, 1e3, 1e3], [1e3 + 1e-6, 1e3, 1e3], [1e3, 1e3 + 1e-6, 1e3]]),
+                              np.array([[0, 1, 2]]))
+        values[f"{p}_mesh"] = str(path)
     if "envmap" in values:
         from ..environment import GENERATORS, cache_dir, generated
 
