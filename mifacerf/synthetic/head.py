@@ -245,13 +245,17 @@ def head_sdf(p: np.ndarray) -> np.ndarray:
     return d
 
 
-def sdf_gradient(p: np.ndarray, h: float = 1e-5) -> np.ndarray:
-    """Central-difference gradient of :func:`head_sdf`."""
+def sdf_gradient(p: np.ndarray, h: float = 1e-5, f0: np.ndarray | None = None) -> np.ndarray:
+    """Gradient of :func:`head_sdf`: central differences, or forward ones when ``f0`` (the SDF at
+    ``p``) is given."""
     g = np.empty_like(p)
     for k in range(3):
         e = np.zeros(3)
         e[k] = h
-        g[..., k] = (head_sdf(p + e) - head_sdf(p - e)) / (2 * h)
+        if f0 is None:
+            g[..., k] = (head_sdf(p + e) - head_sdf(p - e)) / (2 * h)
+        else:
+            g[..., k] = (head_sdf(p + e) - f0) / h
     return g
 
 
@@ -306,7 +310,7 @@ ROW_SEGMENTS = (
 )
 
 
-def profile_curve(phi: float, res: float = 0.0013):
+def profile_curve(phi: float, res: float = 0.0019):
     """The outer zero contour of the head in the half-plane at azimuth ``phi``: (N, 2) of (ρ, y),
     ordered from the crown down to ``NECK_BASE_Y``."""
     import contourpy
@@ -401,7 +405,7 @@ def project_to_surface(P, keep_y=None, iters=2):
     return P
 
 
-def _relax_free(P, crown, fixed_rows, region, iters=40, damping=0.5):
+def _relax_free(P, crown, fixed_rows, region, iters=30, damping=0.55):
     """Tangential, weighted-Laplacian relaxation of the (R, C) grid ``P`` on the SDF surface.
 
     Edge weights are 1/h² of the initial median row / column spacings, so the designed grading
@@ -431,7 +435,7 @@ def _relax_free(P, crown, fixed_rows, region, iters=40, damping=0.5):
         T = (w_up * up + w_dn * down + w_l * np.roll(P, 1, axis=1) + w_r * np.roll(P, -1, axis=1)) / wsum
         Q = P[idx]
         D = damping * (T[idx] - Q)
-        g = sdf_gradient(Q)
+        g = sdf_gradient(Q, f0=head_sdf(Q))
         n = g / np.linalg.norm(g, axis=1, keepdims=True)
         D -= np.einsum("ij,ij->i", D, n)[:, None] * n
         D[ky, 1] = 0.0

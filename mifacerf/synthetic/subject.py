@@ -136,7 +136,7 @@ class Subject:
         # atlas (cached) and textures (static part cached)
         res = self.texture_resolution
         at = cache.cached(cache.key("atlas", res, self.skin_faces.shape, float(self.skin_rest.sum())),
-                          lambda: build_atlas(self.skin_rest, self.skin_faces, res))
+                          lambda: build_atlas(self.skin_rest, self.skin_faces, res, self._texture_importance()))
         self.atlas = at
         self.skin_uv = at["uv"]
         self.skin_uv_faces = at["uv_faces"]
@@ -161,6 +161,15 @@ class Subject:
         self.template = build_template(self)
         self.skin_face_region = self._face_region()
         self._neutral_pose = None
+
+    def _texture_importance(self) -> np.ndarray:
+        """(F,) bool: skin faces that get full texel density (the face and the front of the neck;
+        the hair, the back of the head and neck get less)."""
+        from .textures import hair_mask, head_azimuth
+
+        C = self.neutral_skin[self.skin_faces].mean(axis=1)
+        front = np.abs(head_azimuth(C)) < np.radians(105)
+        return front & (hair_mask(C) < 0.5) & (C[:, 1] > H.NECK_BASE_Y + 0.015)
 
     def _face_region(self) -> np.ndarray:
         """(F,) bool: skin triangles inside the area the template mesh covers (lips and lid margins
