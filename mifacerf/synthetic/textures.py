@@ -284,7 +284,7 @@ def _families():
         def crow_phase(P, c=c, sgn=sgn):
             return np.arctan2(P[:, 1] - c[1], sgn * (P[:, 0] - c[0])) / 0.17
 
-        fam.append(Family(f"crows_feet_{sfx}", crow_mask, crow_phase, 0.00035, gain=8.0))
+        fam.append(Family(f"crows_feet_{sfx}", crow_mask, crow_phase, 0.00055, width=0.22, gain=8.0))
 
         a = np.array([sgn * 0.0205, -0.036])
         b = np.array([sgn * 0.0335, -0.078])
@@ -298,7 +298,7 @@ def _families():
         def nl_phase(P, a=a, b=b, sgn=sgn):
             return _seg_dist(P, a, b) * sgn / 0.0040
 
-        fam.append(Family(f"nasolabial_{sfx}", nl_mask, nl_phase, 0.0008, width=0.30, gain=7.0,
+        fam.append(Family(f"nasolabial_{sfx}", nl_mask, nl_phase, 0.0016, width=0.38, gain=7.0,
                           dead=0.05, single=True))
         ce = eL * np.array([sgn, 1, 1])
 
