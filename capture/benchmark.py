@@ -175,6 +175,7 @@ def geometry(preset, resolution, views, spp, seed, model):
         "principal_point_error_px": [round(e["principal_px"], 2) for e in errs],
         "rotation_error_deg": [round(e["rotation_deg"], 3) for e in errs],
         "centre_error_mm": [round(1000 * e["centre_m"], 1) for e in errs],
+        "distortion_error_px": [round(e["distortion_px"], 2) for e in errs],
         "relative_rotation_error_deg": [round(r["rotation_deg"], 3) for r in rel],
         "relative_centre_error_mm": [round(1000 * r["centre_m"], 1) for r in rel]}, indent=1))
 

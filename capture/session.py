@@ -48,7 +48,7 @@ from .hardware.controller import (CommandRefused, ControllerError, ControllerTim
                                   StrobeController)
 from .hardware.sequence import Sequence, olat_sequence
 from .journal import Journal, fsync_dir, read_journal
-from .motion import MotionCheck, MotionVerdict, reference_from, representative_lights
+from .motion import MotionCheck, reference_from, representative_lights
 
 SESSION_FORMAT = "mifacerf.capture-session"
 SESSION_VERSION = 1
@@ -110,6 +110,7 @@ class SessionState:
     takes: dict[str, list[Take]] = field(default_factory=dict)
     complete: dict[str, dict[str, str]] = field(default_factory=dict)  # expression -> {rel path: sha}
     finished: bool = False
+    starts: int = 0  # how many times the session has been run (1 + resumes)
 
     @classmethod
     def from_records(cls, records: list[dict]) -> "SessionState":
@@ -151,6 +152,8 @@ class SessionState:
                 take.status = "rejected"
         elif ev == "session_complete":
             self.finished = True
+        elif ev == "start":
+            self.starts += 1
 
     def take(self, expression: str, number: int) -> Take | None:
         for t in self.takes.get(expression, []):
@@ -360,7 +363,7 @@ class CaptureSession:
             self.journal = Journal(self.root / JOURNAL)
         except OSError as exc:
             raise SessionInterrupted(f"cannot open the session journal: {exc.strerror or exc}") from exc
-        resumed = len(self.state.takes) > 0 or bool(self.state.complete)
+        resumed = self.state.starts > 0
         try:
             self._log("start", resume=resumed, pid=os.getpid(), bad_journal_lines=self.bad_lines)
             self._recover()

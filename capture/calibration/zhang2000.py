@@ -411,7 +411,17 @@ def pose_errors(estimated: Camera, truth: Camera) -> dict:
             "focal_rel": float(np.mean([abs(estimated.K[0, 0] / truth.K[0, 0] - 1),
                                         abs(estimated.K[1, 1] / truth.K[1, 1] - 1)])),
             "principal_px": float(np.linalg.norm(estimated.K[:2, 2] - truth.K[:2, 2])),
-            "dist_abs": (np.abs(estimated.dist - truth.dist)).tolist()}
+            "dist_abs": (np.abs(estimated.dist - truth.dist)).tolist(),
+            "distortion_px": distortion_difference_px(estimated, truth)}
+
+
+def distortion_difference_px(estimated: Camera, truth: Camera, n: int = 21) -> float:
+    """Largest difference (pixels, at the true focal length) between the two lens distortions over
+    the true camera's image: how far apart the two models put the same ray."""
+    u, v = np.meshgrid(np.linspace(0, truth.width - 1, n), np.linspace(0, truth.height - 1, n))
+    xn = truth.undistort_pixels(np.stack([u.ravel(), v.ravel()], axis=1))
+    d = estimated.distort(xn) - truth.distort(xn)
+    return float(np.max(np.linalg.norm(d * [truth.K[0, 0], truth.K[1, 1]], axis=1)))
 
 
 def relative_pose_errors(est: list[Camera], truth: list[Camera], reference: int = 0) -> list[dict]:
