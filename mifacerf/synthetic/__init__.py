@@ -11,7 +11,9 @@ Modules: :mod:`.head` (geometry), :mod:`.expressions` (controls and deformation)
 :mod:`.parts` (eyes, teeth, mouth interior), :mod:`.textures` (atlas, albedo, roughness,
 normal map, wrinkles), :mod:`.dots` (fiducials), :mod:`.template` (registration template),
 :mod:`.presets` (captured expressions), :mod:`.subject` (the subject and its poses),
-:mod:`.scene` (Mitsuba scene), :mod:`.mesh_subject` (a user's own blendshape meshes).
+:mod:`.scene` (Mitsuba scene), :mod:`.mesh_subject` (a user's own blendshape meshes),
+:mod:`.preview` (contact sheets: ``python -m mifacerf.synthetic.preview --preset draft``).
+Expensive build steps are cached under ``$MIFACERF_CACHE`` (default ``~/.cache/mifacerf``).
 """
 from .expressions import CONTROLS, Control
 from .presets import Expression

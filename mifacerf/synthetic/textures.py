@@ -404,6 +404,8 @@ class SkinTextures:
         self.roughness = static["roughness"].astype(np.float32)
         self.base_slopes = static["slopes"].astype(np.float32)   # (res*res, 2)
         self.normal_map = encode_normals(self.base_slopes).reshape(res, res, 3)
+        for a in (self.albedo, self.roughness, self.normal_map):
+            a.flags.writeable = False      # shared by every pose without wrinkles
         self._setup_wrinkles()
 
     # ------------------------------------------------------------------------------------------
