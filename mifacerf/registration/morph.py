@@ -170,6 +170,40 @@ def mls_affine(src_anchors, dst_anchors, points, alpha: float = 1.0, eps: float 
     return qs + np.einsum("mij,mj->mi", A, P - ps)
 
 
+def local_affine(src: np.ndarray, dst: np.ndarray, w: np.ndarray, q: np.ndarray, reg: float = 0.05) -> np.ndarray:
+    """Batched weighted affine maps (regularised towards the weighted rigid map) applied to queries.
+
+    ``src``, ``dst`` (M, K, 3) anchors per query (padding rows with weight 0), ``w`` (M, K),
+    ``q`` (M, 3). Queries with no weight stay where they are; with one or two anchors the map is
+    their mean translation.
+    """
+    w = np.asarray(w, np.float64)
+    wsum = w.sum(1)
+    out = np.asarray(q, np.float64).copy()
+    ok = wsum > 0
+    if not ok.any():
+        return out
+    S, D, W, Q = src[ok], dst[ok], w[ok], q[ok]
+    ws = W.sum(1, keepdims=True)
+    ps = np.einsum("mk,mki->mi", W, S) / ws
+    qs = np.einsum("mk,mki->mi", W, D) / ws
+    n = (W > 0).sum(1)
+    res = Q - ps + qs                                            # translation only
+    many = n >= 3
+    if many.any():
+        Sm, Dm, Wm = S[many], D[many], W[many]
+        Ph, Qh = Sm - ps[many, None], Dm - qs[many, None]
+        R, _ = horn(Sm, Dm, Wm)
+        PtP = np.einsum("mk,mki,mkj->mij", Wm, Ph, Ph)
+        QtP = np.einsum("mk,mki,mkj->mij", Wm, Qh, Ph)
+        lam = reg * np.trace(PtP, axis1=1, axis2=2)[:, None, None] + 1e-18
+        A = np.linalg.solve((PtP + lam * np.eye(3)).transpose(0, 2, 1), (QtP + lam * R).transpose(0, 2, 1))
+        A = A.transpose(0, 2, 1)
+        res[many] = qs[many] + np.einsum("mij,mj->mi", A, Q[many] - ps[many])
+    out[ok] = res
+    return out
+
+
 # --------------------------------------------------------------------------------- reference choice
 def coarse_neighbourhoods(n_points: int, triangles) -> list[np.ndarray]:
     """Each coarse point with its neighbours in the coarse mesh (sorted index arrays)."""

@@ -41,7 +41,7 @@ from .dots import DotFilter, face_mask, peak_near
 from .hand import HandInputs, Template, read_hand_inputs
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
 from .proxies import proxies_for
-from .snap import Views, dot_graph, progressive_snap, snap
+from .snap import Views, dot_graph, progressive_snap, snap, view_weights
 from .texcoords import texture_coordinates
 from .triangulate import triangulate
 from .visibility import Visibility
@@ -59,11 +59,12 @@ class RegistrationInputError(ValueError):
 class Options:
     """Tunable parameters (lengths in pixel footprints at the stage centre)."""
 
-    radius_px: float = 3.0          #: 3-D search radius of the progressive snap
-    neutral_radius_px: float = 2.5  #: search radius about the user's template positions (neutral)
+    radius_px: float = 3.5          #: 3-D search radius of the progressive snap
+    neutral_radius_px: float = 4.0  #: search radius about the user's template positions (neutral; a point
+    #:                                 clicked in two nearby views is uncertain in depth)
     step_px: float = 0.5            #: grid spacing of the coarse 3-D search
     decay: float = 0.8              #: threshold multiplier per level
-    floor: float = 0.15             #: lowest threshold, as a fraction of the initial one
+    floor: float = 0.1              #: lowest threshold, as a fraction of the initial one
     min_strength: float = 0.8       #: ... and never below this (≈ one clear view, in dot-strength units)
     max_reproj: float = 1.0         #: views must agree to this many pixels
     min_cos: float = 0.2            #: views more oblique than this (cosine) are not used for a dot
@@ -192,13 +193,13 @@ class Registrar:
 
     def register_dots(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float) -> tuple:
         o = self.opt
-        vis = self.vis(pred, self.cams, min_cos=o.min_cos)
+        vis = view_weights(*self.vis(pred, self.cams, min_cos=o.min_cos, return_cos=True))
         r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius_px * self.fp,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
-                             max_reproj=o.max_reproj)
+                             max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp))
         X, snapped = r.X.copy(), r.snapped.copy()
         # polish: visibility from the registered mesh, then a small re-snap of every registered dot
-        vis2 = self.vis(X, self.cams, min_cos=o.min_cos)
+        vis2 = view_weights(*self.vis(X, self.cams, min_cos=o.min_cos, return_cos=True))
         ids = self.dots[snapped[self.dots]]
         p = snap(views, X[ids], vis2[:, ids], radius=1.0 * self.fp, step=0.25 * self.fp, max_reproj=o.max_reproj)
         good = p.ok & (p.strength >= 0.5 * o.min_strength)
@@ -467,10 +468,19 @@ class Registrar:
                       for r in regs])
         choice = choose_references(N.vertices, cn, D)
         pred = np.empty_like(N.vertices)
+        missing = ~usable
+        if missing.any():
+            e.report["coarse_points"]["filled_for_the_morph"] = coarse[missing].tolist()
         for k, r in enumerate(regs):
             sel = choice == k
             if sel.any():
-                m = CoarseMorph(self.registered[r].vertices[coarse], cN, self.tpl.coarse_triangles)
+                cR = self.registered[r].vertices[coarse]
+                cNk = cN.copy()
+                if missing.any():
+                    # a coarse point the user could not click still shapes the morph: its position is
+                    # carried from R by its clicked neighbours (initial estimate only, never data)
+                    cNk[missing] = mls_affine(cR[usable], cN[usable], cR[missing], k=6, eps=0.01)
+                m = CoarseMorph(cR, cNk, self.tpl.coarse_triangles)
                 pred[sel] = m(self.registered[r].vertices[sel])
         return pred, choice, regs, o.radius_px
 

@@ -169,6 +169,62 @@ def format_table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def pictures(capture, truth, registration, folder, expression: str, crop: int | None = None) -> list[Path]:
+    """PNGs for people, per camera of ``expression``: the two proxies, the dot-strength map, the true
+    (green circles) and registered (red crosses; magenta = not registered) fiducials over the diffuse
+    proxy, and the dot removal (before / after, one light). Returns the files written."""
+    import cv2
+
+    from ..imageio import write_png
+    from ..pictures import grid, label, tile8
+
+    cap = capture if isinstance(capture, Capture) else Capture(capture)
+    reg = Registration(registration or cap.root / "registration", capture=cap)
+    tpl = Template.from_dict(reg.template)
+    filt = DotFilter.from_dict(reg.meta["dot_filter"])
+    cone = float(reg.meta.get("options", {}).get("cone_deg", 60.0))
+    r = reg.expression(expression)
+    T = np.load(Path(truth) / "expressions" / f"{expression}.npz")["template_vertices"] if truth else None
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for c, cam in enumerate(cap.rig.cameras):
+        p = proxies_for(cap, expression, cam.name, cone_deg=cone)
+        s = filt.strength(p.diffuse, cam.name)
+        scale = max(1, int(round(512 / cam.height)))
+        ex = 1.0 / max(float(np.percentile(p.diffuse, 99.5)), 1e-12)
+
+        def big(img8):
+            return cv2.resize(img8, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+
+        def at(uv):
+            return int(round((uv[0] + 0.5) * scale - 0.5)), int(round((uv[1] + 0.5) * scale - 0.5))
+
+        overlay = big(tile8(p.diffuse, ex))
+        ids = tpl.dot_ids[r.visible[c, tpl.dot_ids]]
+        if T is not None:
+            for uv in cam.project(T[ids])[0]:
+                cv2.circle(overlay, at(uv), max(2, scale), (0, 255, 0), 1, cv2.LINE_AA)
+        for i, uv in zip(ids, cam.project(r.vertices[ids])[0]):
+            cv2.drawMarker(overlay, at(uv), (255, 0, 0) if r.status[i] == 1 else (255, 0, 255),
+                           cv2.MARKER_CROSS, max(3, scale + 1), 1)
+        f0 = cap.field(expression, cam.name, lights=[0])[0]
+        f1 = reg.field(expression, cam.name, lights=[0])[0]
+        e1 = 1.0 / max(float(np.percentile(f0, 99.5)), 1e-12)
+        tiles = [label(big(tile8(p.diffuse, ex)), f"{cam.name} diffuse - cone"),
+                 label(big(tile8(p.p95, 1.0 / max(float(np.percentile(p.p95, 99.5)), 1e-12))), "95th percentile"),
+                 label(big(tile8(np.clip(s / 1.5, 0, 1)[..., None].repeat(3, -1) ** 2.2)), "dot strength"),
+                 label(overlay, "truth (green) / registered (red)"),
+                 label(big(tile8(f0, e1)), "light 0: captured"), label(big(tile8(f1, e1)), "light 0: dots removed")]
+        if crop:
+            h0 = (tiles[0].shape[0] - crop) // 2
+            tiles = [t[h0:h0 + crop, h0:h0 + crop] for t in tiles]
+        path = folder / f"{expression}_{cam.name}.png"
+        write_png(path, grid(tiles, 3))
+        written.append(path)
+    return written
+
+
 def main(argv=None):
     import argparse
 
@@ -176,12 +232,17 @@ def main(argv=None):
     ap.add_argument("out", help="a 'mifacerf synth' output folder (with capture/ and truth/)")
     ap.add_argument("--registration", default=None)
     ap.add_argument("--json", default=None, help="write the full result here")
+    ap.add_argument("--pictures", default=None, help="write PNGs of these expressions (comma-separated) ...")
+    ap.add_argument("--pictures-dir", default="registration-pictures", help="... into this folder")
     a = ap.parse_args(argv)
     out = Path(a.out)
     res = evaluate(out / "capture", out / "truth", a.registration)
     print(format_table(res))
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=1))
+    for name in (a.pictures.split(",") if a.pictures else []):
+        for path in pictures(out / "capture", out / "truth", a.registration, a.pictures_dir, name.strip()):
+            print(path)
 
 
 if __name__ == "__main__":

@@ -17,9 +17,10 @@ triangulation's worst reprojection error is below ``max_reproj`` pixels).
 1. ``S`` = the known points (the coarse points, themselves snapped from the user's position);
 2. their offsets = known position − morph prediction;
 3. threshold = the strongest dot strength of the known points;
-4. for every point bordering ``S``: predicted offset = mean offset of its neighbours in ``S``;
-   snap from prediction + offset; accept (add to ``S``, store the offset) if the strength is
-   at least the threshold;
+4. for every point bordering ``S``: predicted offset from its neighbours in ``S`` (the paper
+   averages their offsets; here a local affine map fitted to the snapped points within two rings,
+   which also carries a rotation or a stretch, :func:`_predict_from_neighbours`); snap from the
+   prediction + offset; accept (add to ``S``) if the strength is at least the threshold;
 5. repeat 4 while points are added;
 6. lower the threshold (× ``decay``); while it stays above ``floor`` × the initial threshold
    (and above ``min_strength``), go to 4.
@@ -48,6 +49,15 @@ def ball(radius: float, step: float) -> np.ndarray:
     return P[np.argsort(np.linalg.norm(P, axis=1), kind="stable")]
 
 
+def view_weights(vis: np.ndarray, cosines: np.ndarray, floor: float = 0.35) -> np.ndarray:
+    """(C, M) weights of the views in the dot strength: ``1 / max(cos, floor)`` where visible, else 0.
+
+    A round dot seen at an angle θ from its normal covers ``cos θ`` of its frontal area, and the
+    matched filter answers in proportion; dividing by the expected foreshortening puts an oblique but
+    clearly present dot on the same scale as a frontal one (``floor`` bounds the gain)."""
+    return np.where(vis, 1.0 / np.maximum(np.nan_to_num(cosines, nan=1.0), floor), 0.0)
+
+
 class Views:
     """The dot-strength maps of one expression: ``cams`` (C cameras), ``maps`` (C, H, W)."""
 
@@ -65,7 +75,8 @@ class Views:
         return out
 
     def strength(self, X: np.ndarray, vis: np.ndarray) -> np.ndarray:
-        """(M,) dot strength: the sum over the views where each point is visible (``vis`` (C, M))."""
+        """(M,) dot strength: the sum over the views where each point is visible (``vis`` (C, M), bool,
+        or float view weights, 0 where not visible)."""
         return (self.per_view(X) * vis).sum(0)
 
 
@@ -102,6 +113,9 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
          prior: float = 0.4) -> SnapResult:
     """3-D snap of points ``X0`` (M, 3) with visibility ``vis`` (C, M); see the module docstring.
 
+    ``vis`` may hold float weights per view (0 = not visible): :func:`view_weights` compensates the
+    foreshortening of dots seen obliquely.
+
     ``prior``: the coarse search maximises ``strength − prior · (|offset| / radius)²``, a mild
     preference for the predicted position that settles two-view ambiguities (a wrong pair of
     dots on corresponding epipolar lines) in favour of the nearer candidate.
@@ -111,10 +125,11 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
     if M == 0:
         z = np.zeros(0)
         return SnapResult(np.zeros((0, 3)), z, z.astype(int), z.astype(bool), z)
-    vis = np.asarray(vis, bool).reshape(len(views.cams), M)
+    w = np.asarray(vis, np.float64).reshape(len(views.cams), M)
+    vis = w > 0
     offs = ball(radius, step)
-    Xc = _grid_search(views, X0, vis, offs, chunk, prior * (np.linalg.norm(offs, axis=1) / radius) ** 2)
-    Xf = _grid_search(views, Xc, vis, ball(step, step / 3.0), chunk)
+    Xc = _grid_search(views, X0, w, offs, chunk, prior * (np.linalg.norm(offs, axis=1) / radius) ** 2)
+    Xf = _grid_search(views, Xc, w, ball(step, step / 3.0), chunk)
     # sub-pixel: per-view peaks next to the projection, triangulated
     C = len(views.cams)
     uv = np.full((C, M, 2), np.nan)
@@ -128,10 +143,16 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
         uv[c, sel[good]] = pk[good]
     tr = triangulate(views.cams, uv, max_error=max_reproj)
     ok = tr.ok & (tr.max_error <= max_reproj)
-    moved = np.linalg.norm(np.where(ok[:, None], tr.points, Xf) - Xf, axis=1)
-    ok &= moved <= 2.0 * step
+    # the refined point must still look like the grid's answer in every view it uses (an image-space
+    # test: two views with a short baseline may move it in depth by more than a grid step)
+    Xt = np.where(ok[:, None], tr.points, Xf)
+    for c, cam in enumerate(views.cams):
+        m = tr.used[c] & ok
+        if m.any():
+            shift = np.linalg.norm(cam.project(Xt[m])[0] - cam.project(Xf[m])[0], axis=1)
+            ok[np.flatnonzero(m)[shift > 1.5]] = False
     X = np.where(ok[:, None], tr.points, Xf)
-    strength = views.strength(X, vis)
+    strength = views.strength(X, w)
     return SnapResult(X, strength, np.where(ok, tr.n_views, 0), ok, np.where(ok, tr.max_error, np.nan))
 
 
@@ -174,17 +195,76 @@ class ProgressiveResult:
     accepted_per_level: list = field(default_factory=list)
 
 
+def _scatter(n: int, ids: np.ndarray, values: np.ndarray) -> np.ndarray:
+    out = np.full((n, values.shape[1]), np.nan)
+    out[ids] = values
+    return out
+
+
+def _exclusive(acc: np.ndarray, cand_X: np.ndarray, taken: np.ndarray, X: np.ndarray, starts: np.ndarray,
+               min_separation: float) -> np.ndarray:
+    """Drop accepted candidates that landed on a dot already taken (by a point of ``S`` or by another
+    candidate nearer its start): one image dot registers one template point."""
+    if acc.size == 0 or min_separation <= 0:
+        return acc
+    from scipy.spatial import cKDTree
+
+    P = cand_X[acc]
+    keep = np.ones(len(acc), bool)
+    if taken.size:
+        d, _ = cKDTree(X[taken]).query(P)
+        keep &= d > min_separation
+    # among the candidates: the one nearest its own start wins
+    dist_start = np.linalg.norm(P - starts, axis=1)
+    for i, j in cKDTree(P).query_pairs(min_separation):
+        if dist_start[i] <= dist_start[j]:
+            keep[j] = False
+        else:
+            keep[i] = False
+    return acc[keep]
+
+
+def _predict_from_neighbours(pred, X, in_S, ids, neighbours, rings2, max_anchors: int = 12) -> np.ndarray:
+    """Start positions of points ``ids``: their prediction corrected by the snapped points round them.
+
+    The paper averages the neighbours' offsets; here the snapped points within two rings give a
+    weighted local affine map (regularised towards rigid, :func:`.morph.local_affine`) from
+    predicted to snapped positions, so a rotating or stretching region (a jaw opening) carries its
+    first-order motion to the next point, not only its mean translation. With fewer than three
+    such points, the mean offset of the snapped neighbours (the paper's rule).
+    """
+    from .morph import local_affine
+
+    M = len(ids)
+    src = np.zeros((M, max_anchors, 3))
+    dst = np.zeros((M, max_anchors, 3))
+    w = np.zeros((M, max_anchors))
+    for k, v in enumerate(ids):
+        a = rings2[v][in_S[rings2[v]]]
+        if len(a) < 3:
+            a = neighbours[v][in_S[neighbours[v]]]
+        if len(a) == 0:
+            continue
+        d = np.linalg.norm(pred[a] - pred[v], axis=1)
+        o = np.argsort(d)[:max_anchors]
+        a, d = a[o], d[o]
+        src[k, :len(a)], dst[k, :len(a)] = pred[a], X[a]
+        w[k, :len(a)] = 1.0 / (d + 0.003) ** 2
+    return local_affine(src, dst, w, pred[ids])
+
+
 def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbours: list[np.ndarray],
                      known: dict, vis: np.ndarray, radius: float, step: float, decay: float = 0.8,
-                     floor: float = 0.15, min_strength: float = 0.8, max_reproj: float = 1.0,
-                     known_radius: float | None = None) -> ProgressiveResult:
+                     floor: float = 0.1, min_strength: float = 0.8, max_reproj: float = 1.0,
+                     known_radius: float | None = None, min_separation: float = 0.0) -> ProgressiveResult:
     """The paper's progressive snap (module docstring).
 
     ``pred`` (T, 3) morph predictions of all template vertices; ``dots`` ids to register;
     ``neighbours`` per vertex its dot neighbours (:func:`dot_graph`); ``known`` {vertex id: (3,)}
     known positions (coarse points); ``vis`` (C, T) visibility from the current mesh estimate.
     ``radius`` / ``step`` of the 3-D search (metres); ``known_radius`` the search about a known
-    point (default ``radius / 2``).
+    point (default ``radius / 2``); ``min_separation`` (metres): a snap landing closer than this to
+    a point already registered is refused (it found that point's dot, not its own).
     """
     pred = np.asarray(pred, np.float64)
     T = len(pred)
@@ -222,6 +302,8 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         attempts += int(is_target.sum())
         t0 = float(np.max(np.where(r.ok, r.strength, 0.0), initial=0.0)) or float(len(views.cams))
     t_floor = max(floor * t0, min_strength)
+    rings2 = [np.unique(np.concatenate([neighbours[v]] + [neighbours[u] for u in neighbours[v]]))
+              if len(neighbours[v]) else neighbours[v] for v in range(T)]
     schedule = []
     last_start = np.full((T, 3), np.nan)
     cache_X = np.full((T, 3), np.nan)
@@ -241,9 +323,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
                 border = np.flatnonzero(is_target)
             if border.size == 0:
                 break
-            off = np.stack([np.nanmean(offset[neighbours[v][in_S[neighbours[v]]]], axis=0)
-                            if in_S[neighbours[v]].any() else np.zeros(3) for v in border])
-            start = pred[border] + off
+            start = _predict_from_neighbours(pred, X, in_S, border, neighbours, rings2)
             redo = ~(np.linalg.norm(start - last_start[border], axis=1) < 0.1 * step)
             if redo.any():
                 rb = border[redo]
@@ -252,6 +332,8 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
                 last_start[rb] = start[redo]
                 cache_X[rb], cache_s[rb], cache_ok[rb] = r.X, r.strength, r.ok
             acc = border[cache_ok[border] & (cache_s[border] >= t)]
+            acc = _exclusive(acc, cache_X, np.flatnonzero(in_S & is_target), X, start[np.searchsorted(border, acc)]
+                             if acc.size else np.zeros((0, 3)), min_separation)
             X[border] = np.where(cache_ok[border, None], cache_X[border], start)
             strength[border] = cache_s[border]
             if acc.size == 0:
@@ -277,6 +359,9 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         r = snap(views, start, vis[:, rest], radius, step, max_reproj)
         attempts += len(rest)
         acc = r.ok & (r.strength >= t_floor)
+        a_ids = _exclusive(rest[acc], _scatter(T, rest, r.X), np.flatnonzero(in_S & is_target), X, start[acc],
+                           min_separation)
+        acc = np.isin(rest, a_ids)
         X[rest] = np.where(acc[:, None], r.X, start)
         strength[rest] = r.strength
         snapped[rest[acc]] = True

@@ -44,19 +44,23 @@ class Visibility:
         return self._scene
 
     def __call__(self, V: np.ndarray, cams: list[Camera], points: np.ndarray | None = None,
-                 normals: np.ndarray | None = None, min_cos: float = 0.2) -> np.ndarray:
-        """(C, N) visibility of ``points`` (default: the mesh vertices ``V``) on the mesh ``V``."""
+                 normals: np.ndarray | None = None, min_cos: float = 0.2, return_cos: bool = False):
+        """(C, N) visibility of ``points`` (default: the mesh vertices ``V``) on the mesh ``V``
+        (and, with ``return_cos``, the (C, N) cosines between the normal and the view direction)."""
         V = np.asarray(V, np.float64)
         P = V if points is None else np.asarray(points, np.float64)
         N = vertex_normals(V, self.F) if normals is None and points is None else normals
         scene = self.scene(V)
         out = np.zeros((len(cams), len(P)), bool)
+        cos = np.full((len(cams), len(P)), np.nan)
         for c, cam in enumerate(cams):
             vis = scene.visible_from(P, cam, tol=self.tol)
-            if N is not None and min_cos is not None:
+            if N is not None:
                 d = cam.centre - P
                 d /= np.linalg.norm(d, axis=1, keepdims=True)
                 cosv = np.einsum("ij,ij->i", d, N)
-                vis &= (cosv > min_cos) | (np.linalg.norm(N, axis=1) == 0)
+                cos[c] = np.where(np.linalg.norm(N, axis=1) > 0, cosv, np.nan)
+                if min_cos is not None:
+                    vis &= (cosv > min_cos) | (np.linalg.norm(N, axis=1) == 0)
             out[c] = vis
-        return out
+        return (out, cos) if return_cos else out

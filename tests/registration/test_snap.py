@@ -72,7 +72,8 @@ def test_progressive_snap_propagates_offsets_and_marks_failures(rig, rng):
     nb = dot_graph(len(X), F, np.ones(len(X), bool))
     known = {i: X[i] for i in (0, 55)}
     vis = np.ones((len(cams), len(X)), bool)
-    r = progressive_snap(views, pred, np.arange(len(X)), nb, known, vis, radius=3 * fp, step=0.5 * fp)
+    r = progressive_snap(views, pred, np.arange(len(X)), nb, known, vis, radius=3 * fp, step=0.5 * fp,
+                         min_separation=1.0 * fp)
     assert not r.snapped[missing]
     ok = np.setdiff1d(present, list(known))
     assert r.snapped[ok].all()

@@ -1,0 +1,83 @@
+"""End to end on the synthetic subject at the ``tiny`` preset: synth → register → compare with the truth.
+
+Registration must read only the capture folder: the truth is moved out of the synth folder before
+registering, and an audit hook fails the test if any file under it is opened while registering.
+
+Thresholds are honest for ``tiny`` (three cameras at 128 px): a fiducial must be seen by two views
+to be triangulated, which only ~60 % of them are; the draft preset's numbers are in docs/registration.md.
+"""
+import shutil
+import sys
+
+import numpy as np
+import pytest
+
+TINY_EXPRESSIONS = ["neutral", "viseme_aa", "head_turn_left"]
+_WATCH = {"root": None, "opened": []}
+
+
+def _audit(event, args):
+    root = _WATCH["root"]
+    if root is not None and event == "open" and args and isinstance(args[0], (str, bytes)):
+        path = args[0].decode() if isinstance(args[0], bytes) else args[0]
+        if path.startswith(root):
+            _WATCH["opened"].append(path)
+
+
+sys.addaudithook(_audit)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from mifacerf.registration import register_capture
+    from mifacerf.synthetic.synth import synthesize
+
+    root = tmp_path_factory.mktemp("tiny")
+    cap = synthesize(root / "synth", preset="tiny", expressions=TINY_EXPRESSIONS, progress=False)
+    truth = root / "hidden-truth"
+    shutil.move(str(root / "synth" / "truth"), truth)
+    _WATCH["root"] = str(truth)
+    try:
+        out = register_capture(cap, progress=False)
+    finally:
+        _WATCH["root"] = None
+    return cap, truth, out
+
+
+@pytest.mark.slow
+def test_tiny_registration_against_truth(tiny):
+    from mifacerf.registration.report import evaluate
+
+    cap, truth, out = tiny
+    assert _WATCH["opened"] == [], "registration opened ground-truth files"
+    res = evaluate(cap, truth, out)
+    rows = res["per_expression"]
+    assert sorted(rows) == sorted(TINY_EXPRESSIONS)
+    for name, r in rows.items():
+        # at most what two or more views can see; most of that
+        assert r["registered_fraction"] >= 0.7 * r["seen_by_2plus_views"], name
+        assert r["median_px"] < 0.4, name
+        assert r["p95_px"] < 3.5, name
+        assert r["dot_response_after"] < 0.4 * r["dot_response_before"], name
+        assert r["eye_centre_m"] < 0.003, name
+    assert rows["head_turn_left"]["head_rotation_deg"] < 1.5
+    assert rows["viseme_aa"]["lower_teeth_m"] < 0.005
+
+
+@pytest.mark.slow
+def test_tiny_outputs_feed_the_model_build(tiny):
+    """The registration folder holds what ``mifacerf build`` reads (template keys, arrays, patches)."""
+    from mifacerf.registered import Registration
+    from mifacerf.rendering.build import template_arrays
+
+    cap, truth, out = tiny
+    reg = Registration(out)
+    t = template_arrays(reg.template)
+    assert t["fiducial"].sum() == 300 and t["n_vertices"] == len(reg.expression("neutral").vertices)
+    assert set(t["regions"]) >= {"forehead", "mouth"}
+    for name in TINY_EXPRESSIONS:
+        r = reg.expression(name)
+        assert r.uv.shape == (3, t["n_vertices"], 2) and r.visible.shape == (3, t["n_vertices"])
+        assert np.isfinite(r.eye_centres).all() and np.isfinite(r.teeth).all()
+        assert reg.dotfree_patch(name, "cam1") is not None
+    assert np.allclose(reg.expression("neutral").head_pose, np.eye(4))
