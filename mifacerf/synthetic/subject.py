@@ -244,6 +244,33 @@ class Subject:
             tex, acts = None, {}
         return Pose(p, V, N, parts, dots, tv, tex, T, acts, st.lid_angles)
 
+    def without_dots(self) -> "Subject":
+        """The same subject with its fiducial dots washed off (evaluation's ground truth: the model
+        renders dot-free faces, paper §4.2). Shares everything but the skin's static albedo and
+        roughness, which are rebuilt without dots (cached on disk like the dotted ones)."""
+        import copy
+
+        if getattr(self, "_dot_free", None) is None:
+            res = self.texture_resolution
+            key = cache.key("skin-static-nodots", res, float(self.skin_rest.sum()))
+            static = cache.load(key)
+            if static is None:
+                static = self.tex._static_maps(np.zeros((0, 3)), DOT_RADIUS)
+                try:
+                    cache.save(key, **{k: v.astype(np.float16) for k, v in static.items()})
+                except OSError:
+                    pass
+            clean = copy.copy(self)
+            clean.tex = copy.copy(self.tex)
+            for name in ("albedo", "roughness"):
+                a = np.asarray(static[name], np.float32).copy()
+                a.flags.writeable = False
+                setattr(clean.tex, name, a)
+            clean._neutral_pose = None
+            clean._dot_free = clean
+            self._dot_free = clean
+        return self._dot_free
+
     def split_skin(self, pose: Pose):
         """Skin for a renderer: (positions (V_uv, 3), normals (V_uv, 3), uv (V_uv, 2), faces (F, 3))."""
         m = self.skin_uv_vertex

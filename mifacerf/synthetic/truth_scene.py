@@ -22,8 +22,10 @@ class TruthRenderer:
     ``subject``: the synthetic subject; ``truth``: ``truth.json``; ``cameras``: the capture's cameras.
     """
 
-    def __init__(self, subject, truth: dict, cameras: list[Camera]):
-        self.subject = subject
+    def __init__(self, subject, truth: dict, cameras: list[Camera], dots: bool = False):
+        # the model renders dot-free faces (the dots are removed from its data), so by default the
+        # ground truth shows the subject with its dots washed off
+        self.subject = subject if dots or not hasattr(subject, "without_dots") else subject.without_dots()
         self.truth = truth
         self.cameras = cameras
         self.controls = [c.name for c in subject.controls]
@@ -31,11 +33,11 @@ class TruthRenderer:
         self._scenes: dict[str, object] = {}
 
     @classmethod
-    def from_synth(cls, out) -> "TruthRenderer":
+    def from_synth(cls, out, dots: bool = False) -> "TruthRenderer":
         out = Path(out)
         truth = read_truth(out)
         cap = Capture(out / "capture")
-        return cls(load_subject(truth["subject"].get("folder")), truth, cap.rig.cameras)
+        return cls(load_subject(truth["subject"].get("folder")), truth, cap.rig.cameras, dots=dots)
 
     # ------------------------------------------------------------- parameters
     def params_from_spec(self, spec: str, is_params: bool = False) -> np.ndarray:
