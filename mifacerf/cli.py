@@ -19,6 +19,8 @@ LAZY_COMMANDS = {
     "bench": "mifacerf.evaluation.cli:bench_cmd",
     "evaluate": "mifacerf.evaluation.cli:evaluate_cmd",
     "demo": "mifacerf.demo:demo_cmd",
+    "track": "mifacerf.tracking.cli:track_cmd",
+    "drive": "mifacerf.tracking.cli:drive_cmd",
 }
 
 

@@ -16,17 +16,27 @@ import click
 @click.option("--overwrite", is_flag=True, help="Replace a complete capture already in OUT.")
 @click.option("--contact-sheet/--no-contact-sheet", default=True, show_default=True,
               help="Also write OUT/contact_sheet.png.")
-def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet):
+@click.option("--performance", type=float, default=None, metavar="SECONDS",
+              help="Also record a multi-view performance this long into OUT/performance (an existing capture "
+                   "is reused); see docs/tracking.md.")
+@click.option("--performance-size", type=int, default=192, show_default=True, help="Video resolution (square).")
+def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size):
     """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."""
     from ..capture_folder import CaptureError
     from .synth import synthesize
 
+    reuse = performance is not None and not overwrite and (Path(out) / "capture" / "manifest.json").exists()
     try:
-        cap = synthesize(out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite)
+        cap = Path(out) / "capture" if reuse else synthesize(
+            out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite)
+        if performance is not None:
+            from ..tracking.record import record_performance
+
+            click.echo(f"performance written to {record_performance(out, performance, size=performance_size)}")
     except (CaptureError, ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from exc
-    click.echo(f"capture written to {cap}")
-    if contact_sheet:
+    click.echo(f"capture reused: {cap}" if reuse else f"capture written to {cap}")
+    if contact_sheet and not reuse:
         from tqdm.auto import tqdm
 
         from ..contact_sheet import contact_sheet as sheet

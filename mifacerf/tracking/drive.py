@@ -1,0 +1,273 @@
+"""``mifacerf drive TRACK --model MODEL``: the model driven by a tracked performance (paper §6.4, §7).
+
+Per frame of the track: the target mesh's §5 weights per vertex and region (the model's
+:class:`~mifacerf.blending.BlendModel`, through :meth:`FaceModel.target`), filtered in time against
+scintillation (:func:`smooth_weights`), rendered relit under each
+environment from one camera with the rendering API, composited over the environment's plate
+(:func:`mifacerf.rendering.api.composite`), written as an image sequence and an mp4 video.
+
+``DRIVE/`` (default ``TRACK/drive``)::
+
+    drive.json                       inputs, camera, per-frame timing, coherence, PSNR (with --truth)
+    weights.npz                      weights (N, T, S) float16, the §5 weights rendered (filtered in time);
+                                     weights_unsmoothed, frames (N,), expressions (S,)
+    <env>/frames/F<frame:05d>.png    the composite, sRGB 8-bit
+    <env>/frames/F<frame:05d>.exr    the render itself, RGBA half float (premultiplied, linear)
+    <env>/performance.mp4            the composite as a video at the performance's frame rate
+    <env>/truth/F<frame:05d>.exr     (with --truth) the path-traced ground truth of the same frame
+    strip.png                        (with --truth) a strip of frames: ground truth above, render below
+
+With ``truth`` (a ``mifacerf synth`` output folder), every frame is also path-traced from the
+performance's true parameters under the same environment and camera
+(:class:`mifacerf.synthetic.truth_scene.TruthRenderer`), and the per-frame PSNR over the face
+(pixels both images cover fully) and the same coherence measures on the truth are reported.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..capture_folder import write_json_atomic
+from ..evaluation.metrics import psnr
+from .coherence import PixelCoherence, weight_summary
+from .track import Track
+
+FORMAT = "mifacerf.drive"
+
+
+def smooth_weights(W: np.ndarray, sigma: float) -> np.ndarray:
+    """Per-vertex §5 weights (N, T, S) filtered in time (Gaussian, ``sigma`` frames; 0 = off), renormalised.
+
+    Near a Delaunay cell boundary of a vertex's local deformation space, the tracked mesh's
+    sub-millimetre noise flips the vertex between cells from frame to frame — the scintillation
+    the paper's culling (§5.1) fights. A short temporal filter (2 frames = 33 ms at 60 fps) removes
+    the flicker and keeps the changes that motion makes.
+    """
+    if sigma <= 0 or len(W) < 2:
+        return W
+    from scipy.ndimage import gaussian_filter1d
+
+    Ws = np.clip(gaussian_filter1d(np.asarray(W, np.float64), sigma, axis=0, mode="nearest"), 0.0, None)
+    return Ws / np.maximum(Ws.sum(-1, keepdims=True), 1e-12)
+
+
+def frame_parts(face, track: Track, f: int, base: dict) -> dict:
+    """Eye and teeth transforms of frame ``f``: the model's estimate from the mesh (jaw from the lower lip
+    and chin), with the eyes from tracking (iris keyframes, relative to the head pose) and the
+    head-rigid parts (upper teeth, mouth interior) on the tracked head pose."""
+    parts = face.parts(mesh=track.vertices[f])
+    for i, eye in enumerate(("eye_left", "eye_right")):
+        if eye in base and np.isfinite(track.eyes[f, i]).all():
+            parts[eye] = track.eyes[f, i] @ base[eye]
+    for p in ("teeth_upper", "mouth_interior"):
+        if p in base:
+            parts[p] = track.head_pose[f] @ base[p]
+    return parts
+
+
+def face_pixels(truth_renderer, env, camera, truth_rgba: np.ndarray, render_rgba: np.ndarray) -> np.ndarray:
+    """The pixels the rendering measurement compares (mifacerf.evaluation): fully on modelled parts of the
+    posed truth (template skin, eyes, teeth) and fully covered by the render."""
+    from ..evaluation.masks import classify_pixels, face_mask
+
+    classes = classify_pixels(truth_renderer.scene(env), camera, spp=4)
+    return face_mask(classes) & (truth_rgba[..., 3] > 0.999) & (render_rgba[..., 3] > 0.999)
+
+
+def exposure_for(images) -> float:
+    """One exposure for a whole sequence: the 99th percentile of the first frame's covered pixels → 0.9."""
+    img = np.asarray(images)
+    vals = img[..., :3][img[..., 3] > 0.5] if img.shape[-1] == 4 else img.reshape(-1, 3)
+    p = float(np.percentile(vals, 99)) if vals.size else 1.0
+    return 0.9 / max(p, 1e-6)
+
+
+class VideoWriter:
+    """An mp4 writer (imageio-ffmpeg, H.264); frames are sRGB uint8 (H, W, 3)."""
+
+    def __init__(self, path, fps: float):
+        import imageio.v2 as iio
+
+        self.path = Path(path)
+        self.writer = iio.get_writer(str(self.path), fps=fps, codec="libx264", quality=8, macro_block_size=1,
+                                     ffmpeg_log_level="error", pixelformat="yuv420p")
+
+    def add(self, frame8: np.ndarray) -> None:
+        h, w = frame8.shape[:2]
+        self.writer.append_data(frame8[: h - h % 2, : w - w % 2])
+
+    def close(self) -> None:
+        self.writer.close()
+
+
+def strip(rows: list[list[np.ndarray]], labels: list[str], exposure: float, path, scale: int = 1) -> Path:
+    """Write a grid of linear RGB images (rows of equal-size frames), a label at the left of each row."""
+    import cv2
+
+    from ..imageio import to_srgb8, write_png
+
+    tiles = []
+    for row, label in zip(rows, labels):
+        im = np.concatenate([to_srgb8(x[..., :3], exposure) for x in row], axis=1)
+        if scale != 1:
+            im = cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+        pad = np.full((im.shape[0], 110, 3), 255, np.uint8)
+        cv2.putText(pad, label, (4, im.shape[0] // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        tiles.append(np.concatenate([pad, im], axis=1))
+    write_png(path, np.concatenate(tiles, axis=0))
+    return Path(path)
+
+
+def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: int | None = None, spp: int = 4,
+          truth=None, truth_spp: int = 64, frames=None, exr: bool = True, video: bool = True,
+          weight_sigma: float = 2.0, progress: bool = True, log=None) -> Path:
+    """Drive ``model`` with ``track``; returns the output folder (see the module docstring)."""
+    from tqdm.auto import tqdm
+
+    from ..imageio import read_exr, to_srgb8, write_exr, write_png
+    from ..rendering.api import composite, environment_plate, load_model
+
+    tr = track if isinstance(track, Track) else Track(track)
+    face = model if hasattr(model, "renderer") else load_model(model)
+    out = Path(out) if out is not None else tr.root / "drive"
+    out.mkdir(parents=True, exist_ok=True)
+    if frames is None:
+        fl = list(range(tr.n_frames))
+    elif isinstance(frames, (tuple, list)):
+        fl = list(range(max(0, int(frames[0])), min(int(frames[1]), tr.n_frames)))
+    else:
+        fl = list(range(min(int(frames), tr.n_frames)))
+    if not fl:
+        raise ValueError(f"no frames to drive (the track has {tr.n_frames})")
+    n = len(fl)
+    V = tr.vertices
+    if V.shape[1] != face.model.n_vertices:
+        raise ValueError(f"the track has {V.shape[1]} template vertices, the model {face.model.n_vertices}")
+    cam = face.camera(camera, size)
+
+    # §5 weights per frame (per vertex and region) — the same call FaceModel.render(mesh=...) makes
+    t0 = time.perf_counter()
+    W_raw = np.stack([face.target(mesh=V[f])[1] for f in fl])
+    W = smooth_weights(W_raw, weight_sigma)
+    weights_s = (time.perf_counter() - t0) / n
+    tmp = out / ".weights.tmp.npz"
+    np.savez_compressed(tmp, weights=W.astype(np.float16), weights_unsmoothed=W_raw.astype(np.float16),
+                        frames=np.array(fl), expressions=np.array(face.expressions))
+    os.replace(tmp, out / "weights.npz")
+
+    truth_r = truth_params = None
+    if truth is not None:
+        from ..synthetic.truth_scene import TruthRenderer
+        from .record import read_truth
+
+        truth_r = TruthRenderer.from_synth(truth)
+        truth_params = read_truth(truth)["params"]
+
+    meta = {"format": FORMAT, "version": 1, "track": str(tr.root.resolve()), "model": str(Path(face.model.root).resolve()),
+            "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1], "fps": tr.fps, "spp": spp, "environments": {},
+            "weights": {"seconds_per_frame": round(weights_s, 4), "temporal_sigma_frames": weight_sigma,
+                        "coherence": weight_summary(W), "coherence_unsmoothed": weight_summary(W_raw)}}
+    if truth is not None:
+        from ..rendering.api import FaceModel  # noqa: F401  (only the truth's own weights below)
+
+        tv = read_truth(truth)["template_vertices"]
+        Wt = np.stack([face.target(mesh=tv[f])[1] for f in fl])
+        meta["weights"]["truth_coherence"] = weight_summary(Wt)
+        meta["weights"]["vs_truth_mean_tv"] = round(float((0.5 * np.abs(W - Wt).sum(-1)).mean()), 5)
+
+    base = {}
+    if getattr(face.model, "references", None):
+        from ..rendering.parts import part_transforms
+
+        s0 = face.model.expression_index(face.model.neutral)
+        base = part_transforms(face.model.template, face.model.eye_centres[s0], face.model.teeth[s0],
+                               face.model.head_pose[s0])
+    picks = {fl[k] for k in np.unique(np.linspace(0, n - 1, min(6, n)).round().astype(int))}
+    rows, labels, exposure = [], [], None
+    for env_name in envs:
+        env = face.environment(env_name)
+        ename = Path(str(env_name)).stem
+        edir = out / ename
+        (edir / "frames").mkdir(parents=True, exist_ok=True)
+        plate = environment_plate(env, cam)
+        vw = VideoWriter(edir / "performance.mp4", tr.fps) if video else None
+        coh, coh_t = PixelCoherence(), PixelCoherence()
+        times = {"render": [], "composite_write": [], "truth": []}
+        scores = []
+        strip_r, strip_t = [], []
+        bar = tqdm(total=n, desc=f"drive {ename}", unit="frame", disable=not progress)
+        env_exposure = None
+        for k, f in enumerate(fl):
+            t0 = time.perf_counter()
+            rgba = face.renderer.render(V[f], W[k], cam, env, spp=spp, seed=0, frame=f,
+                                        parts=frame_parts(face, tr, f, base) if base else None)
+            t1 = time.perf_counter()
+            rgb = composite(rgba, plate)
+            if env_exposure is None:
+                env_exposure = exposure_for(rgba)
+            write_png(edir / "frames" / f"F{f:05d}.png", rgb, exposure=env_exposure)
+            if exr:
+                write_exr(edir / "frames" / f"F{f:05d}.exr", rgba)
+            if vw is not None:
+                vw.add(to_srgb8(rgb, env_exposure))
+            coh.add(rgba)
+            t2 = time.perf_counter()
+            times["render"].append(t1 - t0)
+            times["composite_write"].append(t2 - t1)
+            if truth_r is not None:
+                tpath = edir / "truth" / f"F{f:05d}.exr"
+                t3 = time.perf_counter()
+                if tpath.exists():   # a resumed run: the truth is already path-traced
+                    gt = read_exr(tpath, channels=4)
+                    truth_r.scene(env).set_pose(truth_r.subject.pose(truth_params[f], textures=False))
+                else:
+                    tpath.parent.mkdir(parents=True, exist_ok=True)
+                    gt = truth_r.render(truth_params[f], cam, env, spp=truth_spp, seed=0)
+                    write_exr(tpath, gt)
+                times["truth"].append(time.perf_counter() - t3)
+                coh_t.add(gt)
+                m = face_pixels(truth_r, env, cam, gt, rgba)
+                scores.append(psnr(rgba, gt, m) if m.any() else float("nan"))
+                if f in picks:
+                    strip_t.append(composite(gt, plate))
+            if f in picks:
+                strip_r.append(rgb)
+            bar.update(1)
+            if scores:
+                bar.set_postfix_str(f"PSNR {scores[-1]:.1f} dB")
+        bar.close()
+        if vw is not None:
+            vw.close()
+        exposure = exposure or env_exposure
+        e = {"render_seconds_per_frame": round(float(np.mean(times["render"])), 4),
+             "write_seconds_per_frame": round(float(np.mean(times["composite_write"])), 4),
+             "pixel_coherence": coh.summary(), "exposure": env_exposure,
+             "video": str((edir / "performance.mp4").relative_to(out)) if video else None}
+        if scores:
+            s = np.asarray(scores)
+            e.update({"psnr_db": [round(float(x), 3) for x in s],
+                      "psnr_summary": {"mean": round(float(np.nanmean(s)), 3), "min": round(float(np.nanmin(s)), 3),
+                                       "median": round(float(np.nanmedian(s)), 3)},
+                      "truth_pixel_coherence": coh_t.summary(), "truth_spp": truth_spp,
+                      "truth_seconds_per_frame": round(float(np.mean(times["truth"])), 3)})
+            rows += [strip_t, strip_r]
+            labels += [f"truth {ename}", f"render {ename}"]
+        else:
+            rows.append(strip_r)
+            labels.append(f"render {ename}")
+        meta["environments"][ename] = e
+        write_json_atomic(out / "drive.json", meta)
+        if log:
+            msg = f"{ename}: {n} frames, render {e['render_seconds_per_frame']:.2f} s/frame"
+            if scores:
+                msg += f", PSNR mean {e['psnr_summary']['mean']:.2f} dB (min {e['psnr_summary']['min']:.2f})"
+            log(msg)
+    if rows:
+        strip(rows, labels, exposure or 1.0, out / "strip.png")
+        meta["strip"] = "strip.png"
+        meta["strip_frames"] = sorted(int(p) for p in picks)
+    write_json_atomic(out / "drive.json", meta)
+    return out

@@ -1,0 +1,141 @@
+"""The performance folder: a multi-view video of a performance, and the only input of tracking.
+
+Layout (docs/tracking.md)::
+
+    PERF/
+      manifest.json                       written last: its presence means "complete"
+      frames/<camera>/F<frame:05d>.exr    one image per camera and video frame (OpenEXR half, linear RGB)
+      hand/template.json                  the template the user built on the neutral (mifacerf.template/1)
+      hand/keyframes.json                 which frames were hand-marked, and for what (lips, eyelids, irises)
+      hand/rotoscope/F<frame:05d>.json    one keyframe's marks, in the registration's rotoscope format
+
+``manifest.json``::
+
+    {"format": "mifacerf.performance", "version": 1,
+     "fps": 60.0, "n_frames": N,
+     "cameras": [Camera.to_dict(), ...],          # calibrated, OpenCV conventions, video resolution
+     "frame_pattern": "frames/{camera}/F{frame:05d}.exr",
+     "lighting": {...},                           # how the subject was lit (documentation only)
+     "template": "hand/template.json",
+     "starts_at_rest": true,                      # frame 0 shows the neutral face, head at the neutral pose
+     "subject": {...}, "dot_radius": 0.0015}
+
+Frames are synchronised (genlocked): file ``F00042`` of every camera was exposed at
+``42 / fps`` seconds. A camera that dropped a frame simply lacks that file; a duplicated
+frame is a file identical to the previous one (tracking detects both, see :mod:`.health`).
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..capture_folder import write_json_atomic
+from ..imageio import ImageFileError, read_exr, write_exr
+
+FORMAT = "mifacerf.performance"
+VERSION = 1
+FRAME_PATTERN = "frames/{camera}/F{frame:05d}.exr"
+KEYFRAMES_FORMAT = "mifacerf.performance_keyframes"
+
+
+class PerformanceError(ValueError):
+    """A missing or inconsistent performance folder; the message names the file."""
+
+
+class PerformanceFolder:
+    """A performance folder opened for reading (frames are read on demand)."""
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        path = self.root / "manifest.json"
+        if not path.exists():
+            raise PerformanceError(f"{path}: missing (not a performance folder, or its recording did not finish)")
+        try:
+            self.meta = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise PerformanceError(f"{path}: not valid JSON ({exc})") from exc
+        if self.meta.get("format") != FORMAT or self.meta.get("version") != VERSION:
+            raise PerformanceError(f"{path}: not a version-{VERSION} {FORMAT} manifest")
+        try:
+            self.cameras = [Camera.from_dict(c) for c in self.meta["cameras"]]
+            self.fps = float(self.meta["fps"])
+            self.n_frames = int(self.meta["n_frames"])
+        except (KeyError, ValueError, TypeError) as exc:
+            raise PerformanceError(f"{path}: needs cameras, fps and n_frames ({exc})") from exc
+        if len(self.cameras) < 2:
+            raise PerformanceError(f"{path}: tracking needs at least two cameras")
+        self.pattern = self.meta.get("frame_pattern", FRAME_PATTERN)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def frame_path(self, camera: str, frame: int) -> Path:
+        return self.root / self.pattern.format(camera=camera, frame=frame)
+
+    def read(self, camera: str, frame: int) -> np.ndarray | None:
+        """The (H, W, 3) image of ``camera`` at ``frame``, or None when the file is missing or unreadable."""
+        cam = self.cameras[self.camera_names.index(camera)]
+        try:
+            return read_exr(self.frame_path(camera, frame), channels=3, expect_shape=(cam.height, cam.width))
+        except ImageFileError:
+            return None
+
+    @property
+    def template_path(self) -> Path:
+        return self.root / self.meta.get("template", "hand/template.json")
+
+    def template(self) -> dict:
+        p = self.template_path
+        if not p.exists():
+            raise PerformanceError(f"{p}: missing (the template built on the neutral)")
+        return json.loads(p.read_text())
+
+    def keyframes(self) -> dict:
+        """{"lips": [frames], "eyelids": [frames], "irises": [frames]} (empty lists when none were marked)."""
+        p = self.root / "hand" / "keyframes.json"
+        if not p.exists():
+            return {"lips": [], "eyelids": [], "irises": []}
+        d = json.loads(p.read_text())
+        return {k: sorted(int(f) for f in d.get(k, [])) for k in ("lips", "eyelids", "irises")}
+
+
+class PerformanceWriter:
+    """Writes a performance folder; :meth:`finish` writes the manifest (completion marker) last."""
+
+    def __init__(self, root: str | os.PathLike, cameras: list[Camera], fps: float, n_frames: int,
+                 template: dict, extra: dict | None = None):
+        self.root = Path(root)
+        self.cameras = cameras
+        for c in cameras:
+            (self.root / "frames" / c.name).mkdir(parents=True, exist_ok=True)
+        (self.root / "hand" / "rotoscope").mkdir(parents=True, exist_ok=True)
+        write_json_atomic(self.root / "hand" / "template.json", template)
+        self.meta = {"format": FORMAT, "version": VERSION, "fps": float(fps), "n_frames": int(n_frames),
+                     "cameras": [c.to_dict() for c in cameras], "frame_pattern": FRAME_PATTERN,
+                     "template": "hand/template.json", **(extra or {})}
+
+    def frame_path(self, camera: str, frame: int) -> Path:
+        return self.root / FRAME_PATTERN.format(camera=camera, frame=frame)
+
+    def has_frame(self, frame: int) -> bool:
+        return all(self.frame_path(c.name, frame).exists() for c in self.cameras)
+
+    def write(self, camera: str, frame: int, image: np.ndarray) -> None:
+        write_exr(self.frame_path(camera, frame), np.asarray(image)[..., :3])
+
+    def write_keyframes(self, index: dict, marks: dict) -> None:
+        """``index`` {"lips"/"eyelids"/"irises": [frames]}; ``marks`` {frame: rotoscope dict}."""
+        for f, d in marks.items():
+            write_json_atomic(self.root / "hand" / "rotoscope" / f"F{int(f):05d}.json", d)
+        write_json_atomic(self.root / "hand" / "keyframes.json",
+                          {"format": KEYFRAMES_FORMAT, "version": 1,
+                           **{k: sorted(int(f) for f in v) for k, v in index.items()}})
+
+    def finish(self) -> Path:
+        write_json_atomic(self.root / "manifest.json", self.meta)
+        return self.root
