@@ -59,8 +59,8 @@ class RegistrationInputError(ValueError):
 class Options:
     """Tunable parameters (lengths in pixel footprints at the stage centre)."""
 
-    radius_px: float = 3.5          #: 3-D search radius of the progressive snap
-    neutral_radius_px: float = 4.0  #: search radius about the user's template positions (neutral; a point
+    radius_px: float = 3.0          #: 3-D search radius of the progressive snap
+    neutral_radius_px: float = 3.0  #: search radius about the user's template positions (neutral; a point
     #:                                 clicked in two nearby views is uncertain in depth)
     step_px: float = 0.5            #: grid spacing of the coarse 3-D search
     decay: float = 0.8              #: threshold multiplier per level

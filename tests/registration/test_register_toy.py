@@ -8,6 +8,7 @@ import pytest
 from mifacerf.capture_folder import Capture
 from mifacerf.registered import Registration
 from mifacerf.registration import RegistrationInputError, register_capture
+from mifacerf.registration.visibility import Visibility
 
 from . import toy
 from .conftest import errors_px
@@ -18,13 +19,16 @@ def test_registers_the_dots(toy_registered):
     reg = Registration(out)
     cams = reg.capture.rig.cameras
     dots = np.arange(len(toy.DOTS))
+    vis = Visibility(np.asarray(reg.template["triangles"]), len(reg.template["vertices"]), tol=5e-4)
     assert reg.expression_names == ["neutral", "stretch", "bulge"]
     for name in reg.expression_names:
         r = reg.expression(name)
         rep = reg.report(name)
         ok = r.status[dots] == 1
-        # three cameras only: the dots on the sides are seen by one view and cannot be triangulated
-        assert ok.mean() > 0.8, name
+        # three cameras only: the dots on the sides are seen by one view and cannot be triangulated;
+        # nearly all of those seen by two views (truth mesh, not grazing) are registered
+        seen = vis(truth[name], cams, min_cos=0.2)[:, dots].sum(0) >= 2
+        assert ok.mean() > 0.7 and ok.mean() >= 0.85 * seen.mean(), (name, ok.mean(), seen.mean())
         assert rep["registered_fraction"] == pytest.approx(ok.mean(), abs=1e-3)
         e = errors_px(r, truth[name], cams, dots[ok])
         assert np.median(e) < 0.35 and np.percentile(e, 90) < 1.0, (name, np.median(e), np.percentile(e, 90))
