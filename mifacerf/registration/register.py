@@ -62,6 +62,7 @@ class Options:
     radius_px: float = 3.0          #: 3-D search radius of the progressive snap
     neutral_radius_px: float = 3.0  #: search radius about the user's template positions (neutral; a point
     #:                                 clicked in two nearby views is uncertain in depth)
+    max_radius_spacing: float = 0.35  #: ... and at most this fraction of the dots' spacing (low resolutions)
     step_px: float = 0.5            #: grid spacing of the coarse 3-D search
     decay: float = 0.8              #: threshold multiplier per level
     floor: float = 0.1              #: lowest threshold, as a fraction of the initial one
@@ -71,6 +72,8 @@ class Options:
     cone_deg: float = 60.0          #: cone omitted from the diffuse proxy
     removal_margin_px: float = 1.0  #: dot removal radius beyond the dot's image radius
     remove_dots: bool = True
+    remove_unregistered: bool = True  #: also paint out dots detected in 2-D but not registered
+    unregistered_strength: float = 0.5  #: ... when their dot strength in the view reaches this
     movable_rings: int = 2          #: non-fiducial vertices this close to a margin follow it
 
 
@@ -123,6 +126,11 @@ class Registrar:
         if "dot_filter" in self.writer.meta:
             self.filter = DotFilter.from_dict(self.writer.meta["dot_filter"])
         self.coarse_nbhds = coarse_neighbourhoods(len(self.tpl.coarse), self.tpl.coarse_triangles)
+        from scipy.spatial import cKDTree
+
+        D = self.tpl.vertices[self.dots]
+        #: median distance between neighbouring fiducials (template): bounds the snap's search
+        self.spacing = float(np.median(cKDTree(D).query(D, 2)[0][:, 1])) if len(D) > 2 else np.inf
 
     # ------------------------------------------------------------------ inputs
     def load(self, name: str, need_fields: bool) -> Expr:
@@ -194,7 +202,9 @@ class Registrar:
     def register_dots(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float) -> tuple:
         o = self.opt
         vis = view_weights(*self.vis(pred, self.cams, min_cos=o.min_cos, return_cos=True))
-        r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius_px * self.fp,
+        radius = min(radius_px * self.fp, o.max_radius_spacing * self.spacing)
+        e.report["search_radius_px"] = round(radius / self.fp, 3)
+        r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
                              max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp))
         X, snapped = r.X.copy(), r.snapped.copy()
@@ -486,22 +496,36 @@ class Registrar:
 
     # ------------------------------------------------------------------ dot removal
     def remove_dots(self, e: Expr, reg: RegisteredExpression) -> dict:
+        """Dot-free patches of every view: the registered fiducials' discs, then (``remove_unregistered``)
+        any dot still detected in 2-D after that (a fiducial that could not be registered in 3-D is
+        still a yellow dot in the images)."""
         ids = self.dots[reg.status[self.dots] == 1]
-        before, after, npix = [], [], 0
+        before, after, npix, extra = [], [], 0, 0
         for c, cam in enumerate(self.cams):
             sel = ids[reg.visible[c, ids]]
             uv, depth = cam.project(reg.vertices[sel])
             focal = np.sqrt(cam.K[0, 0] * cam.K[1, 1])
             r_px = self.tpl.dot_radius * focal / depth + self.opt.removal_margin_px
-            mask = dot_mask((cam.height, cam.width), uv, r_px)
-            inp = Inpainter(mask, face_mask(e.diffuse[cam.name], 0.01))
+            shape = (cam.height, cam.width)
+            mask = dot_mask(shape, uv, r_px)
+            valid = face_mask(e.diffuse[cam.name], 0.01)
+            d0 = e.diffuse[cam.name]
+            s = self.filter.scales.get(cam.name, 1.0)
+            if self.opt.remove_unregistered:
+                # 2-D detections left once the registered dots are painted out
+                left = np.maximum(self.filter.response(Inpainter(mask, valid).apply(d0)), 0) / s
+                peaks = _local_maxima(left, self.opt.unregistered_strength) & valid & ~mask
+                pk = np.argwhere(peaks)[:, ::-1].astype(np.float64)
+                if len(pk):
+                    r_typ = self.tpl.dot_radius * focal / float(np.median(depth) if len(depth) else 1.3)
+                    mask |= dot_mask(shape, pk, r_typ + self.opt.removal_margin_px + 0.5)
+                    extra += len(pk)
+            inp = Inpainter(mask, valid)
             field_ = e.fields[cam.name]
             values = inp.fill(field_) if len(inp) else np.zeros((len(field_), 0, 3), np.float32)
             self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
             npix += len(inp)
-            d0 = e.diffuse[cam.name]
             d1 = inp.apply(d0)
-            s = self.filter.scales.get(cam.name, 1.0)
             r0 = np.maximum(self.filter.response(d0), 0) / s
             r1 = np.maximum(self.filter.response(d1), 0) / s
             if len(uv):
@@ -509,6 +533,8 @@ class Registrar:
                 after.append(peak_near(r1, uv, 1.0)[1])
         b = float(np.mean(np.concatenate(before))) if before else float("nan")
         a = float(np.mean(np.concatenate(after))) if after else float("nan")
+        if extra:
+            e.report["unregistered_dots_removed_2d"] = int(extra)
         return {"pixels": int(npix), "response_before": round(b, 4), "response_after": round(a, 4)}
 
     # ------------------------------------------------------------------ eyes (after all expressions)
@@ -555,6 +581,13 @@ class Registrar:
                 reg.eye_centres = ec
                 self.writer.write_expression(reg, self.writer.meta["expressions"][name])
         return info
+
+
+def _local_maxima(img: np.ndarray, threshold: float) -> np.ndarray:
+    """(H, W) bool: pixels at least ``threshold`` and not smaller than any of their 8 neighbours."""
+    from scipy.ndimage import maximum_filter
+
+    return (img >= threshold) & (img >= maximum_filter(img, size=3))
 
 
 def _stats(x: np.ndarray) -> dict:

@@ -110,7 +110,7 @@ def _grid_search(views: Views, X0: np.ndarray, vis: np.ndarray, offsets: np.ndar
 
 def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: float,
          max_reproj: float = 1.0, min_view_strength: float = 0.25, chunk: int = 256,
-         prior: float = 0.4) -> SnapResult:
+         prior: float = 0.4, two_view_max_px: float | None = 2.0) -> SnapResult:
     """3-D snap of points ``X0`` (M, 3) with visibility ``vis`` (C, M); see the module docstring.
 
     ``vis`` may hold float weights per view (0 = not visible): :func:`view_weights` compensates the
@@ -118,7 +118,9 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
 
     ``prior``: the coarse search maximises ``strength − prior · (|offset| / radius)²``, a mild
     preference for the predicted position that settles two-view ambiguities (a wrong pair of
-    dots on corresponding epipolar lines) in favour of the nearer candidate.
+    dots on corresponding epipolar lines) in favour of the nearer candidate; ``two_view_max_px``:
+    a point found in only two views must project within this many pixels of its start in both
+    (the third view that would expose a phantom is missing).
     """
     X0 = np.asarray(X0, np.float64).reshape(-1, 3)
     M = len(X0)
@@ -151,6 +153,15 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
         if m.any():
             shift = np.linalg.norm(cam.project(Xt[m])[0] - cam.project(Xf[m])[0], axis=1)
             ok[np.flatnonzero(m)[shift > 1.5]] = False
+    # two views alone can agree on a phantom (any two dots on corresponding epipolar lines): a
+    # two-view answer must stay near the start in both images
+    two = ok & (tr.n_views == 2)
+    if two.any() and two_view_max_px is not None:
+        for c, cam in enumerate(views.cams):
+            m = two & tr.used[c]
+            if m.any():
+                shift = np.linalg.norm(cam.project(tr.points[m])[0] - cam.project(X0[m])[0], axis=1)
+                ok[np.flatnonzero(m)[shift > two_view_max_px]] = False
     X = np.where(ok[:, None], tr.points, Xf)
     strength = views.strength(X, w)
     return SnapResult(X, strength, np.where(ok, tr.n_views, 0), ok, np.where(ok, tr.max_error, np.nan))

@@ -3,8 +3,9 @@
 Registration must read only the capture folder: the truth is moved out of the synth folder before
 registering, and an audit hook fails the test if any file under it is opened while registering.
 
-Thresholds are honest for ``tiny`` (three cameras at 128 px): a fiducial must be seen by two views
-to be triangulated, which only ~60 % of them are; the draft preset's numbers are in docs/registration.md.
+Thresholds are honest for ``tiny`` (three cameras at 128 px, 2.3 mm per pixel, dots ~5 px apart): a
+fiducial must be seen by two views to be triangulated, which only ~55 % of them are; the draft
+preset's numbers are in docs/registration.md.
 """
 import shutil
 import sys
@@ -54,14 +55,16 @@ def test_tiny_registration_against_truth(tiny):
     rows = res["per_expression"]
     assert sorted(rows) == sorted(TINY_EXPRESSIONS)
     for name, r in rows.items():
-        # at most what two or more views can see; most of that
-        assert r["registered_fraction"] >= 0.7 * r["seen_by_2plus_views"], name
+        # a fiducial needs two views; tiny's three 128-px cameras see ~55 % of them twice, and the
+        # jaw of an open mouth (registered from the neutral alone here) is the hardest part
+        assert r["registered_of_seen"] >= 0.5, name
         assert r["median_px"] < 0.4, name
-        assert r["p95_px"] < 3.5, name
-        assert r["dot_response_after"] < 0.4 * r["dot_response_before"], name
+        assert r["misregistered_fraction"] < 0.15, name      # registered > 3 px from the truth
+        assert r["dot_response_after"] < 0.25 * r["dot_response_before"], name
         assert r["eye_centre_m"] < 0.003, name
-    assert rows["head_turn_left"]["head_rotation_deg"] < 1.5
-    assert rows["viseme_aa"]["lower_teeth_m"] < 0.005
+    assert rows["head_turn_left"]["head_rotation_deg"] < 1.0
+    # the marked point + head rotation (the paper's approximation), on the user's template strip
+    assert rows["viseme_aa"]["lower_teeth_m"] < 0.008
 
 
 @pytest.mark.slow
