@@ -24,20 +24,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..jitarrays import to_jit
+from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from ..variant import ensure_variant
-
-CAM_PARAMS = 24  # R (9), t (3), fx, fy, cx, cy, k1, k2, p1, p2, k3, width, height, pad
-
-
-def camera_params(cam) -> np.ndarray:
-    p = np.zeros(CAM_PARAMS)
-    p[0:9] = cam.R.reshape(-1)
-    p[9:12] = cam.t
-    p[12:16] = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
-    p[16:21] = cam.dist[:5]
-    p[21:23] = cam.width, cam.height
-    return p
-
 
 class LitFrame:
     """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.
@@ -87,20 +75,7 @@ class LitFrame:
     # ------------------------------------------------------------------ kernel
     def barycentric(self, tri, p):
         """Barycentrics (Vector3f) of world points ``p`` (Point3f) in target triangles ``tri`` (UInt32)."""
-        import drjit as dr
-
-        mi = self.mi
-        v = []
-        for k in range(3):
-            i = dr.gather(mi.UInt32, self.triangles, tri * 3 + k)
-            v.append(mi.Point3f(*[dr.gather(mi.Float, self.target, i * 3 + d) for d in range(3)]))
-        e0, e1, d = v[1] - v[0], v[2] - v[0], p - v[0]
-        d00, d01, d11 = dr.dot(e0, e0), dr.dot(e0, e1), dr.dot(e1, e1)
-        d20, d21 = dr.dot(d, e0), dr.dot(d, e1)
-        inv = dr.rcp(dr.maximum(d00 * d11 - d01 * d01, 1e-30))
-        b1 = (d11 * d20 - d01 * d21) * inv
-        b2 = (d00 * d21 - d01 * d20) * inv
-        return mi.Vector3f(1 - b1 - b2, b1, b2)
+        return self.mi.Vector3f(*barycentric(self.triangles, self.target, tri, p))
 
     def shade(self, tri, bary, active=True):
         """Shade hits: ``tri`` (UInt32), ``bary`` (Vector3f, b0 b1 b2) → (Color3f, covered, fell_back).
@@ -139,44 +114,24 @@ class LitFrame:
                 a += b[k] * dr.gather(Float, self.weights, woff + vid[k], active)
                 for d in range(3):
                     p[d] += b[k] * dr.gather(Float, self.sources, src + vid[k] * 3 + d, active)
-            m = [P(j) for j in range(9)]
-            pc = [m[3 * r_] * p[0] + m[3 * r_ + 1] * p[1] + m[3 * r_ + 2] * p[2] + P(9 + r_) for r_ in range(3)]
-            inv_z = dr.rcp(pc[2])
-            x, y = pc[0] * inv_z, pc[1] * inv_z
-            k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
-            r2_ = x * x + y * y
-            radial = 1 + r2_ * (k1 + r2_ * (k2 + r2_ * k3))
-            xd = x * radial + 2 * p1 * x * y + p2 * (r2_ + 2 * x * x)
-            yd = y * radial + p1 * (r2_ + 2 * y * y) + 2 * p2 * x * y
-            u = P(12) * xd + P(14)
-            v = P(13) * yd + P(15)
-            wdt, hgt = P(21), P(22)
-            dist = dr.norm(mi.Vector3f(pc[0], pc[1], pc[2]))
-            x0f, y0f = dr.floor(u), dr.floor(v)
-            fx, fy = u - x0f, v - y0f
-            x0, y0 = Int32(x0f), Int32(y0f)
-            wi, hi = Int32(wdt), Int32(hgt)
-            use = active & (a > 0) & (pc[2] > 0)
+            u, v, dist, zc, wi, hi = project(P, p)
+            use = active & (a > 0) & (zc > 0)
             # bilinear over the 2x2 texels, each tap used only if the surface camera c saw there lies
             # at the point's distance (occlusion-aware filtering); the fall-back ignores depth
             col_d = [Float(0), Float(0), Float(0)]
             cov_d = Float(0)
             col = [Float(0), Float(0), Float(0)]
             cov = Float(0)
-            for dy in (0, 1):
-                for dx in (0, 1):
-                    xx, yy = x0 + dx, y0 + dy
-                    inside = use & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
-                    pix = ioff + UInt32(dr.select(inside, yy * wi + xx, 0))
-                    wgt = dr.select(inside, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
-                    depth = dr.gather(Float, self.depths, pix, inside)
-                    wdep = dr.select(dr.abs(depth - dist) <= tol, wgt, 0.0)
-                    tap = [dr.gather(Float, self.images, pix * 4 + ch, inside) for ch in range(4)]
-                    for ch in range(3):
-                        col[ch] += wgt * tap[ch]
-                        col_d[ch] += wdep * tap[ch]
-                    cov += wgt * tap[3]
-                    cov_d += wdep * tap[3]
+            for pix, wgt, inside in bilinear_taps(u, v, wi, hi, use):
+                pix = ioff + pix
+                depth = dr.gather(Float, self.depths, pix, inside)
+                wdep = dr.select(dr.abs(depth - dist) <= tol, wgt, 0.0)
+                tap = [dr.gather(Float, self.images, pix * 4 + ch, inside) for ch in range(4)]
+                for ch in range(3):
+                    col[ch] += wgt * tap[ch]
+                    col_d[ch] += wdep * tap[ch]
+                cov += wgt * tap[3]
+                cov_d += wdep * tap[3]
             ok = use & (cov > 1e-3)
             seen = use & (cov_d > 1e-3)
             inv_cov = dr.select(ok, dr.rcp(cov), 0.0)

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
-from .frame import CAM_PARAMS, camera_params
+from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from .light_interp import LightInterpolator
 from .relight import to_device_f16
 from .views import ViewSampler
@@ -102,22 +102,6 @@ class MaterialState:
         self.lights = LightInterpolator(model.light_directions).to_device()
 
     # ------------------------------------------------------------------ kernel
-    def barycentric(self, tri, p):
-        import drjit as dr
-
-        mi = self.mi
-        v = []
-        for k in range(3):
-            i = dr.gather(mi.UInt32, self.triangles, tri * 3 + k)
-            v.append(mi.Point3f(*[dr.gather(mi.Float, self.target, i * 3 + d) for d in range(3)]))
-        e0, e1, d = v[1] - v[0], v[2] - v[0], p - v[0]
-        d00, d01, d11 = dr.dot(e0, e0), dr.dot(e0, e1), dr.dot(e1, e1)
-        d20, d21 = dr.dot(d, e0), dr.dot(d, e1)
-        inv = dr.rcp(dr.maximum(d00 * d11 - d01 * d01, 1e-30))
-        b1 = (d11 * d20 - d01 * d21) * inv
-        b2 = (d00 * d21 - d01 * d20) * inv
-        return [1 - b1 - b2, b1, b2]
-
     def evaluate(self, tri, p, view, light, active=True):
         """Radiance per unit irradiance (Color3f) for hits (triangle ``tri``, point ``p``), unit world
         directions ``view`` (towards the viewer) and ``light`` (towards the light)."""
@@ -126,7 +110,7 @@ class MaterialState:
         mi = self.mi
         Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
         active = mi.Bool(active)
-        b = self.barycentric(tri, p)
+        b = barycentric(self.triangles, self.target, tri, p)
         vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
         n = dr.width(tri) if dr.width(tri) > 1 else dr.width(p.x)
         K, C, T, L3 = self.K, self.C, len(self.model.vertices[0]), self.n_lights * 3
@@ -171,36 +155,20 @@ class MaterialState:
                 def P(e):
                     return dr.gather(Float, self.cam_table, c * CAM_PARAMS + e, usec)
 
-                pc = [P(3 * rr) * ps[0] + P(3 * rr + 1) * ps[1] + P(3 * rr + 2) * ps[2] + P(9 + rr) for rr in range(3)]
-                iz = dr.rcp(pc[2])
-                x, y = pc[0] * iz, pc[1] * iz
-                k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
-                r2_ = x * x + y * y
-                rad = 1 + r2_ * (k1 + r2_ * (k2 + r2_ * k3))
-                xd = x * rad + 2 * p1 * x * y + p2 * (r2_ + 2 * x * x)
-                yd = y * rad + p1 * (r2_ + 2 * y * y) + 2 * p2 * x * y
-                uu, vv = P(12) * xd + P(14), P(13) * yd + P(15)
-                wi, hi = Int32(P(21)), Int32(P(22))
+                uu, vv, _, zc, wi, hi = project(P, ps)
                 foff = dr.gather(UInt32, self.field_offset, u * C + c, usec)
-                x0f, y0f = dr.floor(uu), dr.floor(vv)
-                fx, fy = uu - x0f, vv - y0f
-                x0, y0 = Int32(x0f), Int32(y0f)
                 col = [Float(0), Float(0), Float(0)]
                 cov = Float(0)
-                for dy in (0, 1):
-                    for dx in (0, 1):
-                        xx, yy = x0 + dx, y0 + dy
-                        inside = usec & (pc[2] > 0) & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
-                        t = dr.gather(Int32, self.texel_index, foff + UInt32(dr.select(inside, yy * wi + xx, 0)),
-                                      inside)
-                        ok = inside & (t >= 0)
-                        tw = dr.select(ok, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
-                        row = UInt32(dr.select(ok, t, 0)) * L3
-                        for li in range(3):
-                            for ch in range(3):
-                                val = Float(dr.gather(type(self.rf), self.rf, row + light_ids[li] * 3 + ch, ok))
-                                col[ch] += tw * light_w[li] * val
-                        cov += tw
+                for pix, wgt, inside in bilinear_taps(uu, vv, wi, hi, usec & (zc > 0)):
+                    t = dr.gather(Int32, self.texel_index, foff + pix, inside)
+                    ok = inside & (t >= 0)
+                    tw = dr.select(ok, wgt, 0.0)
+                    row = UInt32(dr.select(ok, t, 0)) * L3
+                    for li in range(3):
+                        for ch in range(3):
+                            val = Float(dr.gather(type(self.rf), self.rf, row + light_ids[li] * 3 + ch, ok))
+                            col[ch] += tw * light_w[li] * val
+                    cov += tw
                 good = usec & (cov > 1e-3)
                 scale = dr.select(good, bk * w * wc / cov, 0.0)
                 r += scale * col[0]

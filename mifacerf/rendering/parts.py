@@ -30,7 +30,7 @@ import numpy as np
 
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
-from .frame import CAM_PARAMS, camera_params
+from .jitgeom import CAM_PARAMS, bilinear_taps, camera_params, project
 
 PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower", "mouth_interior")
 CORNEA_F0 = 0.025  # (n − 1)² / (n + 1)² for the cornea, n ≈ 1.376
@@ -231,31 +231,15 @@ class PartFrame:
             def P(e):
                 return dr.gather(Float, self.cam_table, cidx * CAM_PARAMS + e, use)
 
-            pc = [P(3 * r) * pr[0] + P(3 * r + 1) * pr[1] + P(3 * r + 2) * pr[2] + P(9 + r) for r in range(3)]
-            iz = dr.rcp(pc[2])
-            x, y = pc[0] * iz, pc[1] * iz
-            k1, k2, p1, p2, k3 = P(16), P(17), P(18), P(19), P(20)
-            r2 = x * x + y * y
-            rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-            yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-            u, v = P(12) * xd + P(14), P(13) * yd + P(15)
-            wi, hi = Int32(P(21)), Int32(P(22))
-            dist = dr.norm(mi.Vector3f(pc[0], pc[1], pc[2]))
-            x0f, y0f = dr.floor(u), dr.floor(v)
-            fx, fy = u - x0f, v - y0f
-            x0, y0 = Int32(x0f), Int32(y0f)
-            for dy in (0, 1):
-                for dx in (0, 1):
-                    xx, yy = x0 + dx, y0 + dy
-                    inside = use & (pc[2] > 0) & (xx >= 0) & (yy >= 0) & (xx < wi) & (yy < hi)
-                    pix = off + UInt32(dr.select(inside, yy * wi + xx, 0))
-                    row = dr.gather(Int32, self.index, pix, inside)
-                    depth = dr.gather(Float, self.depth, pix, inside)
-                    ok = inside & (row >= 0) & (dr.abs(depth - dist) <= self.depth_tolerance)
-                    w = dr.select(ok, wc * (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
-                    taps.append((UInt32(dr.select(ok, row, 0)) * L3, w, ok))
-                    wsum += w
+            u, v, dist, zc, wi, hi = project(P, pr)
+            for pix, wgt, inside in bilinear_taps(u, v, wi, hi, use & (zc > 0)):
+                pix = off + pix
+                row = dr.gather(Int32, self.index, pix, inside)
+                depth = dr.gather(Float, self.depth, pix, inside)
+                ok = inside & (row >= 0) & (dr.abs(depth - dist) <= self.depth_tolerance)
+                w = dr.select(ok, wc * wgt, 0.0)
+                taps.append((UInt32(dr.select(ok, row, 0)) * L3, w, ok))
+                wsum += w
         inv = dr.select(wsum > 0, dr.rcp(wsum), 0.0)
         origin = p + n * 2e-4
         n_lights = dr.opaque(UInt32, L)
