@@ -60,7 +60,8 @@ class Radiometry:
     ``exposure``: recorded value per unit radiance; ``colour_matrix`` (3, 3): applied
     after linearisation and exposure; ``response``: None (linear) or a dict
     ``{"x": [...], "y": [...]}`` — a monotone curve mapping recorded values (x) to
-    linear values (y), applied per channel by linear interpolation.
+    linear values (y), applied by linear interpolation; ``y`` is one curve for all
+    channels (n,) or one per channel (3, n) in R, G, B order.
     """
 
     exposure: float = 1.0
@@ -73,8 +74,9 @@ class Radiometry:
             raise ValueError(f"exposure must be positive, got {self.exposure}")
         if self.response is not None:
             x, y = np.asarray(self.response["x"]), np.asarray(self.response["y"])
-            if x.shape != y.shape or x.ndim != 1 or np.any(np.diff(x) <= 0):
-                raise ValueError("response curve needs increasing x and as many y values")
+            if x.ndim != 1 or np.any(np.diff(x) <= 0) or y.shape[-1] != len(x) or y.ndim not in (1, 2) \
+                    or (y.ndim == 2 and len(y) != 3):
+                raise ValueError("response curve needs increasing x and y of shape (n,) or (3, n)")
 
     @property
     def is_identity(self) -> bool:
@@ -88,7 +90,10 @@ class Radiometry:
         if self.response is not None:
             x = np.asarray(self.response["x"], np.float64)
             y = np.asarray(self.response["y"], np.float64)
-            img = np.interp(img, x, y).astype(np.float32)
+            if y.ndim == 1:
+                img = np.interp(img, x, y).astype(np.float32)
+            else:
+                img = np.stack([np.interp(img[..., c], x, y[c]) for c in range(3)], axis=-1).astype(np.float32)
         img = img / np.float32(self.exposure)
         return (img @ self.colour_matrix.T.astype(np.float32)).astype(np.float32)
 

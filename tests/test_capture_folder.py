@@ -142,3 +142,10 @@ def test_wrong_image_size_and_checksum(tmp_path, small_rig, rng):
     cap.checksums.clear()
     with pytest.raises(CaptureError, match="expected 8x6"):
         cap.raw_image("neutral", "cam1", 0)
+
+
+def test_per_channel_response_curves():
+    r = Radiometry(1.0, np.eye(3), {"x": [0, 1], "y": [[0, 2], [0, 1], [0, 0.5]]})
+    np.testing.assert_allclose(r.apply(np.full((1, 1, 3), 0.5))[0, 0], [1.0, 0.5, 0.25])
+    with pytest.raises(ValueError, match="shape"):
+        Radiometry(1.0, np.eye(3), {"x": [0, 1], "y": [[0, 2], [0, 1]]})
