@@ -134,13 +134,16 @@ class Registrar:
 
     # ------------------------------------------------------------------ inputs
     def load(self, name: str, need_fields: bool) -> Expr:
+        from .proxies import load_cached
+
         e = Expr(name)
         for cam in self.names:
-            f = None
+            p = load_cached(self.cap, name, cam, self.opt.cone_deg)
+            f = self.cap.field(name, cam) if (need_fields or p is None) else None
+            if p is None:
+                p = proxies_for(self.cap, name, cam, f, self.opt.cone_deg)
             if need_fields:
-                f = self.cap.field(name, cam).astype(np.float16)
-                e.fields[cam] = f
-            p = proxies_for(self.cap, name, cam, None if f is None else f.astype(np.float32), self.opt.cone_deg)
+                e.fields[cam] = f.astype(np.float16)   # kept for the dot removal (half the memory)
             e.diffuse[cam] = p.diffuse
         return e
 
