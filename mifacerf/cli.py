@@ -21,6 +21,9 @@ LAZY_COMMANDS = {
     "demo": "mifacerf.demo:demo_cmd",
     "track": "mifacerf.tracking.cli:track_cmd",
     "drive": "mifacerf.tracking.cli:drive_cmd",
+    "register": "mifacerf.registration.cli:register_cmd",
+    "capture": "mifacerf.capture.cli:capture_cmd",
+    "calibrate": "mifacerf.capture.cli:calibrate_group",
 }
 
 
@@ -44,9 +47,3 @@ def main():
 
     The pipeline: synth (or capture) → register → build → render; demo runs it all.
     """
-
-
-from mifacerf.capture.cli import capture_cmd, calibrate_group  # noqa: E402
-main.add_command(capture_cmd); main.add_command(calibrate_group)  # noqa: E702
-from mifacerf.registration.cli import register_cmd  # noqa: E402
-main.add_command(register_cmd)

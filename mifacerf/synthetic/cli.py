@@ -57,13 +57,15 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
               help="Environment: sky, sunsky, interior, gradient, or a lat-long .exr/.hdr path.")
 @click.option("--spp", type=int, default=256, show_default=True)
 @click.option("--size", type=int, default=None, help="Image size (default: the capture camera's).")
+@click.option("--dots/--no-dots", default=False, show_default=True,
+              help="Show the fiducial dots (the model's renders are dot-free).")
 @click.option("-o", "--output", default=None, help="Output .exr (a .png is written beside it).")
-def truth_cmd(out, expression, params, camera, yaw, pitch, env, spp, size, output):
+def truth_cmd(out, expression, params, camera, yaw, pitch, env, spp, size, dots, output):
     """Path-trace the synthetic subject of OUT (any expression, camera, environment) with alpha."""
     from ..imageio import write_exr, write_png
     from .truth_scene import TruthRenderer
 
-    tr = TruthRenderer.from_synth(out)
+    tr = TruthRenderer.from_synth(out, dots=dots)
     try:
         p = tr.params_from_spec(expression if params is None else params, is_params=params is not None)
         cam = tr.camera(camera, yaw, pitch, size)
