@@ -65,7 +65,10 @@ def truth_cmd(out, expression, params, camera, yaw, pitch, env, spp, size, dots,
     from ..imageio import write_exr, write_png
     from .truth_scene import TruthRenderer
 
-    tr = TruthRenderer.from_synth(out, dots=dots)
+    try:
+        tr = TruthRenderer.from_synth(out, dots=dots)
+    except (FileNotFoundError, ValueError) as exc:
+        raise click.ClickException(str(exc)) from exc
     try:
         p = tr.params_from_spec(expression if params is None else params, is_params=params is not None)
         cam = tr.camera(camera, yaw, pitch, size)
