@@ -59,6 +59,7 @@ def compress_cmd(model, rank):
     from .model import Model
 
     m = Model(model)
-    for k in rank:
-        info = compress_model(m, k, progress=lambda jobs: tqdm(jobs, desc=f"pca{k}", unit="field"))
-        click.echo(f"rank {k}: {info['fields']} fields, {info['bytes'] / 1e6:.1f} MB")
+    info = compress_model(m, list(rank), progress=lambda jobs: tqdm(jobs, desc="compress", unit="field"))
+    sizes = info["bytes"] if isinstance(info["bytes"], dict) else {rank[0]: info["bytes"]}
+    for k, b in sizes.items():
+        click.echo(f"rank {k}: {info['fields']} fields, {b / 1e6:.1f} MB")

@@ -31,25 +31,28 @@ METHODS = ("pca",)
 
 def compress_field(rf: np.ndarray, rank: int) -> dict:
     """PCA of one field: rf (N, L, 3) → {coeff (N, K) f16, basis (K, L, 3), mean (L, 3)}; K = min(rank, N, 3L)."""
+    return compress_field_ranks(rf, [rank])[rank]
+
+
+def compress_field_ranks(rf: np.ndarray, ranks) -> dict:
+    """:func:`compress_field` for several ranks from one eigen-decomposition: {rank: compressed field}."""
     rf = np.asarray(rf, np.float32)
     n, L = rf.shape[:2]
     X = rf.reshape(n, L * 3).astype(np.float64)
-    mean = X.mean(axis=0)
+    mean = X.mean(axis=0) if n else np.zeros(L * 3)
     Xc = X - mean
-    k = int(min(rank, n, L * 3))
-    if n == 0 or k == 0:
-        return {"coeff": np.zeros((n, 0), np.float16), "basis": np.zeros((0, L, 3), np.float32),
-                "mean": mean.reshape(L, 3).astype(np.float32)}
     # eigen-decomposition of the 3L x 3L covariance: cheap for N >> 3L, exact up to rounding
-    cov = Xc.T @ Xc
-    evals, evecs = np.linalg.eigh(cov)
-    basis = evecs[:, ::-1][:, :k].T  # (K, 3L), orthonormal rows
-    coeff = Xc @ basis.T
-    scale = np.abs(coeff).max(initial=0.0)
-    if scale > 65000:
-        raise ValueError("PCA coefficients overflow float16")
-    return {"coeff": coeff.astype(np.float16), "basis": basis.reshape(k, L, 3).astype(np.float32),
-            "mean": mean.reshape(L, 3).astype(np.float32)}
+    evecs = np.linalg.eigh(Xc.T @ Xc)[1][:, ::-1] if n else np.zeros((L * 3, 0))
+    out = {}
+    for rank in ranks:
+        k = int(min(rank, n, L * 3))
+        basis = evecs[:, :k].T  # (K, 3L), orthonormal rows
+        coeff = Xc @ basis.T
+        if np.abs(coeff).max(initial=0.0) > 65000:
+            raise ValueError("PCA coefficients overflow float16")
+        out[rank] = {"coeff": coeff.astype(np.float16), "basis": basis.reshape(k, L, 3).astype(np.float32),
+                     "mean": mean.reshape(L, 3).astype(np.float32)}
+    return out
 
 
 def reconstruct(comp: dict) -> np.ndarray:
@@ -63,24 +66,26 @@ def compressed_path(model_root, expression: str, camera: str, rank: int) -> Path
     return Path(model_root) / "fields" / expression / f"{camera}.pca{rank}.npz"
 
 
-def compress_model(model, rank: int, progress=None) -> dict:
-    """Write the ``pca<rank>`` version of every field of a model; returns {"bytes": ..., "fields": n}."""
+def compress_model(model, rank, progress=None) -> dict:
+    """Write the ``pca<rank>`` version of every field of a model (``rank``: an int or several, computed
+    from one decomposition per field); returns {"bytes": {rank: ...}, "fields": n}."""
+    ranks = [int(rank)] if np.isscalar(rank) else [int(r) for r in rank]
     jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
-    total = 0
+    total = {r: 0 for r in ranks}
     for s, c in (progress(jobs) if progress else jobs):
         f = model.field(s, c)
-        comp = compress_field(np.asarray(f.rf), rank)
-        path = compressed_path(model.root, f.expression, f.camera, rank)
-        tmp = path.with_name(f".{path.stem}.tmp.npz")
-        np.savez(tmp, **comp)
-        os.replace(tmp, path)
-        total += path.stat().st_size
+        for r, comp in compress_field_ranks(np.asarray(f.rf), ranks).items():
+            path = compressed_path(model.root, f.expression, f.camera, r)
+            tmp = path.with_name(f".{path.stem}.tmp.npz")
+            np.savez(tmp, **comp)
+            os.replace(tmp, path)
+            total[r] += path.stat().st_size
     meta = dict(model.meta)
-    ranks = sorted(set(meta.get("compressed", {}).get("pca", [])) | {int(rank)})
-    meta["compressed"] = {**meta.get("compressed", {}), "pca": ranks}
+    done = sorted(set(meta.get("compressed", {}).get("pca", [])) | set(ranks))
+    meta["compressed"] = {**meta.get("compressed", {}), "pca": done}
     write_json_atomic(Path(model.root) / "model.json", meta)
     model.meta = meta
-    return {"bytes": total, "fields": len(jobs)}
+    return {"bytes": total if len(ranks) > 1 else total[ranks[0]], "fields": len(jobs)}
 
 
 def lit_texels_pca(coeff_device, rank: int, texels: np.ndarray, vertex_ids: np.ndarray, coef: np.ndarray,
