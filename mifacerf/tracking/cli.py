@@ -63,7 +63,7 @@ def track_cmd(performance, out, model, frames, smooth, evaluate, overlays):
 @click.option("--camera", default=None, help="A capture camera's name, or yaw,pitch in degrees (default: the model's second camera).")
 @click.option("--size", type=int, default=None, help="Image size (square; default: the camera's).")
 @click.option("--spp", type=int, default=4, show_default=True)
-@click.option("--frames", default=None, help="Drive only the first N frames, or frames A:B (B excluded).")
+@click.option("--frames", default=None, help="Drive only the first N frames, or frames A:B[:STEP] (B excluded).")
 @click.option("--truth", default=None, type=click.Path(exists=True, file_okay=False),
               help="Evaluation: a 'mifacerf synth' output folder; path-trace every frame's truth and report PSNR.")
 @click.option("--truth-spp", type=int, default=64, show_default=True)
@@ -80,7 +80,7 @@ def drive_cmd(track, model, out, envs, camera, size, spp, frames, truth, truth_s
         try:
             frames = tuple(int(x) for x in frames.split(":")) if ":" in frames else int(frames)
         except ValueError:
-            raise click.BadParameter(f"expected N or A:B, got {frames!r}", param_hint="--frames") from None
+            raise click.BadParameter(f"expected N or A:B[:STEP], got {frames!r}", param_hint="--frames") from None
     cam = camera
     if camera and "," in camera:
         cam = tuple(float(x) for x in camera.split(","))

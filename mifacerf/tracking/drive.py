@@ -8,7 +8,8 @@ environment from one camera with the rendering API, composited over the environm
 
 ``DRIVE/`` (default ``TRACK/drive``)::
 
-    drive.json                       inputs, camera, per-frame timing, coherence, PSNR (with --truth)
+    drive.json                       inputs, camera, per-frame timing, coherence, PSNR and the truth's
+                                     own noise floor (with --truth)
     weights.npz                      weights (N, T, S) float16, the §5 weights rendered (filtered in time);
                                      weights_unsmoothed, frames (N,), expressions (S,)
     <env>/frames/F<frame:05d>.png    the composite, sRGB 8-bit
@@ -137,7 +138,8 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
     if frames is None:
         fl = list(range(tr.n_frames))
     elif isinstance(frames, (tuple, list)):
-        fl = list(range(max(0, int(frames[0])), min(int(frames[1]), tr.n_frames)))
+        step = int(frames[2]) if len(frames) > 2 else 1
+        fl = list(range(max(0, int(frames[0])), min(int(frames[1]), tr.n_frames), max(1, step)))
     else:
         fl = list(range(min(int(frames), tr.n_frames)))
     if not fl:
@@ -150,9 +152,11 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
 
     # §5 weights per frame (per vertex and region) — the same call FaceModel.render(mesh=...) makes
     t0 = time.perf_counter()
-    W_raw = np.stack([face.target(mesh=V[f])[1] for f in fl])
-    W = smooth_weights(W_raw, weight_sigma)
-    weights_s = (time.perf_counter() - t0) / n
+    span = list(range(fl[0], fl[-1] + 1))            # weights of every frame in the span: the filter needs them
+    W_span = np.stack([face.target(mesh=V[f])[1] for f in span])
+    pick = [f - fl[0] for f in fl]
+    W_raw, W = W_span[pick], smooth_weights(W_span, weight_sigma)[pick]
+    weights_s = (time.perf_counter() - t0) / len(span)
     tmp = out / ".weights.tmp.npz"
     np.savez_compressed(tmp, weights=W.astype(np.float16), weights_unsmoothed=W_raw.astype(np.float16),
                         frames=np.array(fl), expressions=np.array(face.expressions))
@@ -167,12 +171,11 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
         truth_params = read_truth(truth)["params"]
 
     meta = {"format": FORMAT, "version": 1, "track": str(tr.root.resolve()), "model": str(Path(face.model.root).resolve()),
-            "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1], "fps": tr.fps, "spp": spp, "environments": {},
+            "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1],
+            "frame_step": fl[1] - fl[0] if n > 1 else 1, "fps": tr.fps, "spp": spp, "environments": {},
             "weights": {"seconds_per_frame": round(weights_s, 4), "temporal_sigma_frames": weight_sigma,
                         "coherence": weight_summary(W), "coherence_unsmoothed": weight_summary(W_raw)}}
-    if truth is not None:
-        from ..rendering.api import FaceModel  # noqa: F401  (only the truth's own weights below)
-
+    if truth is not None:      # the same measure on the true meshes' weights
         tv = read_truth(truth)["template_vertices"]
         Wt = np.stack([face.target(mesh=tv[f])[1] for f in fl])
         meta["weights"]["truth_coherence"] = weight_summary(Wt)
@@ -247,6 +250,13 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
              "pixel_coherence": coh.summary(), "exposure": env_exposure,
              "video": str((edir / "performance.mp4").relative_to(out)) if video else None}
         if scores:
+            # the truth's own noise: a second path-traced render of the first frame (another seed) against
+            # the first, + 3 dB = one render against the noise-free expectation (the PSNR ceiling)
+            gt2 = truth_r.render(truth_params[fl[0]], cam, env, spp=truth_spp, seed=1)
+            gt1 = read_exr(edir / "truth" / f"F{fl[0]:05d}.exr", channels=4)
+            truth_r.scene(env).set_pose(truth_r.subject.pose(truth_params[fl[0]], textures=False))
+            m = face_pixels(truth_r, env, cam, gt1, gt1)
+            e["truth_noise_psnr_db"] = round(float(psnr(gt2, gt1, m) + 10 * np.log10(2)), 3) if m.any() else None
             s = np.asarray(scores)
             e.update({"psnr_db": [round(float(x), 3) for x in s],
                       "psnr_summary": {"mean": round(float(np.nanmean(s)), 3), "min": round(float(np.nanmin(s)), 3),

@@ -51,13 +51,13 @@ def near_dots(X_ref_dots: np.ndarray, points: np.ndarray, k: int) -> np.ndarray:
 
 
 def margin_tracks(V: np.ndarray, X: np.ndarray, margins: dict, keyed: dict, rotoscope: dict,
-                  cams: dict, X_ref: np.ndarray, n_near: int = 12) -> tuple[dict, dict]:
+                  cams: dict, X_ref: np.ndarray, V_ref: np.ndarray | None = None, n_near: int = 12) -> tuple[dict, dict]:
     """Margin positions per frame {margin: (N, n, 3)} and a report.
 
     ``V`` (N, T, 3): the per-frame template from the dots (margins only morphed); ``X`` (N, D, 3)
     the dots; ``margins`` {name: template ids}; ``keyed`` {name: [keyframes]}; ``rotoscope``
-    {frame: Rotoscope}; ``cams`` {name: Camera}; ``X_ref`` (D, 3) the dots at rest (to choose the
-    dots nearest each margin).
+    {frame: Rotoscope}; ``cams`` {name: Camera}; ``X_ref`` (D, 3) the dots and ``V_ref`` (T, 3) the
+    template at rest (to choose the dots nearest each margin).
     """
     N = len(V)
     out, report = {}, {}
@@ -75,7 +75,7 @@ def margin_tracks(V: np.ndarray, X: np.ndarray, margins: dict, keyed: dict, roto
             out[name] = V[:, ids].copy()
             report[name]["source"] = "no keyframe: moved with the dots only"
             continue
-        near = near_dots(X_ref, V[keys[0], ids], n_near)
+        near = near_dots(X_ref, (V[keys[0]] if V_ref is None else V_ref)[ids], n_near)
         M = np.empty((N, len(ids), 3))
         for f in range(N):
             a, b, w = _bracket(keys, f)

@@ -146,7 +146,7 @@ def track_performance(perf, out=None, model=None, options: Options | None = None
     margins = {k: v for k, v in tpl.margins.items() if k in keyed}
     camd = {c.name: c for c in cams}
     rotoscope = rotoscope_by_frame(hand.rotoscope)
-    M, margin_report = margin_tracks(V, X, margins, keyed, rotoscope, camd, tracker.X_ref)
+    M, margin_report = margin_tracks(V, X, margins, keyed, rotoscope, camd, tracker.X_ref, V_ref)
     if margins:
         margin_ids = np.unique(np.concatenate([np.asarray(v) for v in margins.values()]))
         dist = rings(T, tpl.triangles, margin_ids, 2)
