@@ -106,3 +106,19 @@ def test_drive_cli(world, tmp_path):
     r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "--env",
                                   "no-such-env", "--frames", "1"])
     assert r.exit_code != 0
+
+
+def test_demo_performance_stage(world, tmp_path):
+    """``mifacerf demo``'s hook: reuses the recorded performance, tracks, drives, returns its metrics."""
+    import shutil
+
+    from mifacerf.tracking.demo import run_performance
+
+    out = tmp_path / "demo"
+    for name in ("capture", "truth", "performance"):
+        shutil.copytree(world["out"] / name, out / name, ignore=shutil.ignore_patterns("track", "images", "cache"))
+    m = run_performance(out, world["model"], env="gradient")
+    assert m["frames"] == 24 and m["dot_error_px"]["median"] < 0.5
+    assert m["tracking_seconds_per_frame"] > 0 and m["render_seconds_per_frame"] > 0
+    assert (out / "performance_render" / "gradient" / "performance.mp4").exists()
+    json.dumps(m)
