@@ -12,11 +12,11 @@ performance has, each with its own timing, summed and clipped to the controls' r
   rest dominance, so the mouth glides between targets and never holds a shape; every target's
   amplitude is jittered ±25 %;
 * **emotions** coming and going (:data:`EMOTIONS`: asymmetric smirk, worry, joy, scepticism —
-  none of them a captured preset): attack 0.25–0.4 s, hold, release 0.3–0.5 s, added on top of
-  the speech;
+  none of them a captured preset): attack 0.2–0.3 s, hold 0.15–0.4 s, release 0.25–0.4 s, one
+  after the other, added on top of the speech;
 * **head motion**: yaw, pitch and roll as sums of slow sinusoids with random phases plus a nod,
   faded in after the lead-in;
-* **blinks** every 1.0–2.5 s (closing 70 ms, opening 130 ms, sometimes a half blink) and
+* **blinks** every 0.8–2 s (closing 70 ms, opening 130 ms, sometimes a half blink) and
   **saccades** of the gaze every 0.4–0.9 s (40 ms transitions).
 
 Because the layers are summed with independent timing (a smirk while saying /oo/, a blink during
@@ -158,13 +158,13 @@ def script(seconds: float, fps: float = 60.0, seed: int = 0, control_names=None,
                 add(name, Wn[:, k] * val * onset)
 
     # ---- emotions coming and going
-    start = LEAD_IN + rng.uniform(0.1, 0.3)
+    start = LEAD_IN + rng.uniform(0.05, 0.2)
     order = list(EMOTIONS)
     rng.shuffle(order)
     k = 0
     while start < seconds - 0.3:
         name = order[k % len(order)]
-        attack, hold, release = rng.uniform(0.25, 0.4), rng.uniform(0.2, 0.6), rng.uniform(0.3, 0.5)
+        attack, hold, release = rng.uniform(0.2, 0.3), rng.uniform(0.15, 0.4), rng.uniform(0.25, 0.4)
         strength = rng.uniform(0.6, 1.0)
         env = strength * _envelope(t, start, attack, hold, release)
         for cname, val in EMOTIONS[name].items():
@@ -172,7 +172,7 @@ def script(seconds: float, fps: float = 60.0, seed: int = 0, control_names=None,
         events["emotions"].append({"emotion": name, "start": round(start, 4), "attack": round(attack, 3),
                                    "hold": round(hold, 3), "release": round(release, 3),
                                    "strength": round(strength, 3)})
-        start += attack + hold + release + rng.uniform(0.0, 0.3)
+        start += attack + hold + release + rng.uniform(0.0, 0.15)
         k += 1
 
     # ---- head motion (slow sinusoids + a nod), faded in after the lead-in
@@ -190,12 +190,12 @@ def script(seconds: float, fps: float = 60.0, seed: int = 0, control_names=None,
     # ---- blinks (both eyes) and gaze saccades
     bt = LEAD_IN + rng.uniform(0.15, 0.6)
     while bt < seconds - 0.1:
-        depth = 1.0 if rng.random() > 0.2 else 0.6
+        depth = 1.0 if (rng.random() > 0.2 or not events["blinks"]) else 0.6   # the first blink is a full one
         prof = _blink_profile(t, bt, depth=depth)
         add("blink_L", prof)
         add("blink_R", prof)
         events["blinks"].append({"start": round(bt, 4), "depth": depth})
-        bt += rng.uniform(1.0, 2.5)
+        bt += rng.uniform(0.8, 2.0)
     gaze = np.zeros((n, 2))
     st = LEAD_IN + rng.uniform(0.1, 0.3)
     prev = np.zeros(2)

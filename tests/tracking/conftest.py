@@ -114,6 +114,8 @@ def paint_out_dot(perf: Path, camera, frame: int, uv: np.ndarray, radius: float 
     from mifacerf.imageio import read_exr, write_exr
 
     path = perf / "frames" / camera.name / f"F{frame:05d}.exr"
+    if not path.exists():
+        return
     img = read_exr(path)
     yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]]
     d = np.hypot(xx - uv[0], yy - uv[1])
