@@ -198,3 +198,14 @@ def ring_camera(cameras: list[Camera], yaw: float, pitch: float, name: str | Non
     w, h = size or (ref.width, ref.height)
     focal = float(np.mean([c.K[0, 0] for c in cameras])) * w / ref.width
     return Camera.look_at(name or f"yaw{yaw:+.0f}_pitch{pitch:+.0f}", eye, target, width=w, height=h, focal=focal)
+
+
+def cameras_focus(cameras: list[Camera]) -> np.ndarray:
+    """The world point (3,) nearest, in the least-squares sense, to every camera's optical axis:
+    where an operator holds a calibration target so that all cameras see it."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for cam in cameras:
+        P = np.eye(3) - np.outer(cam.forward, cam.forward)   # projector orthogonal to the axis
+        A += P
+        b += P @ cam.centre
+    return np.linalg.lstsq(A, b, rcond=None)[0]

@@ -11,7 +11,7 @@ takes minutes):
    camera and from novel viewpoints, composited into the environment plates
    (``OUT/renders``: EXR + PNG, and ``renders.png``, a contact grid);
 5. **performance** — a tracked multi-view performance driving the model, composited into a
-   plate (``OUT/performance_render``: frames, video), if the tracking stage is available;
+   plate (``OUT/performance_render``: frames, video);
 6. **metrics** — PSNR against path-traced ground truth per case and time per stage
    (``OUT/metrics.json``), and the run-time-against-error benchmark (``OUT/bench``).
 """
@@ -127,12 +127,9 @@ def stage_renders(model: Path, out: Path) -> dict:
             "blends": blends}
 
 
-def stage_performance(out: Path, model: Path) -> dict | None:
-    try:
-        from .tracking.demo import run_performance
-    except ImportError:
-        click.echo("   (the tracking stage is not available in this installation)")
-        return None
+def stage_performance(out: Path, model: Path) -> dict:
+    from .tracking.demo import run_performance
+
     return run_performance(out, model)
 
 
@@ -167,9 +164,7 @@ def demo_cmd(out, preset, fast):
     reg = st.run("registration", stage_register, cap)
     model = st.run("model build + compression", stage_model, cap, reg, out)
     metrics["renders"] = st.run("renders (blends x environments x views)", stage_renders, model, out)
-    perf = st.run("performance (track + drive)", stage_performance, out, model)
-    if perf is not None:
-        metrics["performance"] = perf
+    metrics["performance"] = st.run("performance (track + drive)", stage_performance, out, model)
     m = st.run("metrics (ground truth, benchmark)", stage_metrics, out, model, fast)
     metrics["cases"] = m["cases"]["summary"]
     metrics["truth_noise_psnr"] = m["cases"]["truth_noise_psnr"]
@@ -183,4 +178,4 @@ def demo_cmd(out, preset, fast):
         click.echo(f"case {k}: PSNR {v['psnr'].get('mean', float('nan')):.2f} dB against ground truth, "
                    f"{v['seconds'].get('mean', float('nan')):.2f} s per frame")
     click.echo(f"outputs in {out}/: contact_sheet.png renders.png renders/ metrics.json metrics_cases.png "
-               f"bench/runtime_vs_error.png" + (" performance_render/" if perf is not None else ""))
+               "bench/runtime_vs_error.png performance_render/")

@@ -47,11 +47,11 @@ class FaceRFBSDF(mi.BSDF):
         from mifacerf.rendering.material import MaterialState
         from mifacerf.rendering.scenefile import read_target_mesh
 
-        if not props.has_property("model"):
+        if "model" not in props:
             raise ValueError("facerf_bsdf: the 'model' parameter (a model folder) is required")
         face = load_model(props["model"])
-        target = props["target"] if props.has_property("target") else ""
-        expression = props["expression"] if props.has_property("expression") else face.model.neutral
+        target = props["target"] if "target" in props else ""
+        expression = props["expression"] if "expression" in props else face.model.neutral
         if target:
             verts, W = face.target(mesh=read_target_mesh(target))
         else:

@@ -65,13 +65,13 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         super().__init__(props)
         from mifacerf.rendering.api import load_model
 
-        if not props.has_property("model"):
+        if "model" not in props:
             raise ValueError("facerf: the 'model' parameter (a model folder) is required")
         self.face = load_model(props["model"])
-        self.expression = props.get("expression", None) if props.has_property("expression") else None
-        self.target_path = props["target"] if props.has_property("target") else None
-        self.face_id = props["face"] if props.has_property("face") else "face"
-        self.env_spec = props["environment"] if props.has_property("environment") else None
+        self.expression = props.get("expression", None)
+        self.target_path = props["target"] if "target" in props else None
+        self.face_id = props["face"] if "face" in props else "face"
+        self.env_spec = props["environment"] if "environment" in props else None
         nested = None
         for name in props.keys():
             obj = props.get(name)

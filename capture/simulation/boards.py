@@ -9,14 +9,15 @@ distortion and poses of the given cameras and board poses (the ground truth).
 
 Board poses are rigid transforms board -> **world**: ``x_world = R @ x_board + t``
 (board frame: :mod:`mifacerf.capture.calibration.charuco`). :func:`board_poses`
-draws a seeded set around the stage centre, facing the cameras, the first one
-exactly facing +Z at the origin (:func:`facing_pose`) so it can anchor the world.
+draws a seeded set about a centre, facing the cameras, the first one exactly facing +Z
+(:func:`facing_pose`) so it can anchor the world; :func:`write_board_dataset` centres
+them where the cameras' optical axes meet (:func:`cameras_focus`).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from ...camera import Camera, stratified_pixel_samples
+from ...camera import Camera, cameras_focus, stratified_pixel_samples
 from ...variant import ensure_variant
 from ..calibration.charuco import BoardSpec
 
@@ -42,13 +43,13 @@ def facing_pose(board: BoardSpec, centre=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, n
 def board_poses(board: BoardSpec, n: int = 12, seed: int = 0, tilt_deg: float = 35.0, roll_deg: float = 20.0,
                 offset: float = 0.04, depth: float = 0.15,
                 centre=(0.0, 0.0, 0.04)) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` board poses (R, t), board -> world: the first :func:`facing_pose` at the origin, the
+    """``n`` board poses (R, t), board -> world: the first :func:`facing_pose` at ``centre``, the
     rest tilted up to ``tilt_deg`` about X and Y, rolled up to ``roll_deg``, moved up to
     ``offset`` metres sideways and ``depth`` metres towards or away from the cameras about
     ``centre``. The depth changes matter: with narrow zoom lenses they are what separates a
     camera's focal length from its distance."""
     rng = np.random.default_rng(seed)
-    out = [facing_pose(board)]
+    out = [facing_pose(board, centre)]
     w, h = board.size
     R0, _ = facing_pose(board)
     for i in range(1, n):
@@ -144,7 +145,7 @@ def write_board_dataset(root, cameras: list[Camera], board: BoardSpec, *, n_view
 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    poses = board_poses(board, n_views, seed=seed, tilt_deg=tilt_deg)
+    poses = board_poses(board, n_views, seed=seed, tilt_deg=tilt_deg, centre=cameras_focus(cameras))
     renderer = BoardRenderer(board, spp=spp, seed=seed)
     for ci, cam in enumerate(cameras):
         (root / cam.name).mkdir(exist_ok=True)

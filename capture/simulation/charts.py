@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...camera import Camera
+from ...camera import Camera, cameras_focus
 from ...capture_folder import write_json_atomic
 from ...imageio import write_exr
 from ...rig import Rig
@@ -82,7 +82,8 @@ def write_chart_dataset(root, rig: Rig, sensors: dict[str, SensorModel], *, expo
     grey_names, grey_y = grey_reference()
     grey_rgb = np.repeat(grey_y[:, None], 3, axis=1)
     cc_names, cc_rgb = colorchecker_reference()
-    gpose, cpose = chart_pose(GREY_LAYOUT), chart_pose(COLORCHECKER_LAYOUT)
+    focus = cameras_focus(rig.cameras)   # held where the cameras look
+    gpose, cpose = chart_pose(GREY_LAYOUT, focus), chart_pose(COLORCHECKER_LAYOUT, focus)
     L = rig.lights
     olat = np.arange(len(L)) if olat_lights is None else np.asarray(olat_lights, np.int64)
     olat = olat[L.directions[olat, 2] > 0.05]  # lights behind the chart leave it dark

@@ -21,7 +21,7 @@ BOARD = BoardSpec(9, 7, 0.03, 0.022)
 def boards(tmp_path_factory):
     rig = preset("draft").rig()
     root = tmp_path_factory.mktemp("boards")
-    write_board_dataset(root, rig.cameras, BOARD, n_views=16, spp=4, tilt_deg=55, seed=0)
+    write_board_dataset(root, rig.cameras, BOARD, n_views=20, spp=4, tilt_deg=55, seed=0)
     board, images, desc = read_board_dataset(root)
     truth = json.loads((root / "truth.json").read_text())
     return root, rig, images, desc, truth

@@ -21,7 +21,7 @@ from mifacerf.cli import main
 
 @pytest.fixture(scope="module")
 def charts(tmp_path_factory):
-    rig = tiny_rig(6, 6, 2, 72)
+    rig = tiny_rig(6, 6, 2, 82)   # grey chart ~38x27 px, colour checker ~71x49 px
     sensors = {c.name: SensorModel.realistic(seed=i) for i, c in enumerate(rig.cameras)}
     root = tmp_path_factory.mktemp("charts")
     write_chart_dataset(root, rig, sensors)

@@ -33,7 +33,7 @@ def test_margin_relaxes_onto_two_views(rng):
     after = np.linalg.norm(X - truth, axis=1) / fp
     dense = lip(400, open_=0.004)                                   # distance to the true curve (sliding
     across = np.min(np.linalg.norm(X[:, None] - dense[None], axis=-1), axis=1) / fp   # along it is unseen)
-    assert np.median(before) > 2.5
+    assert np.median(before) > 2.0          # the start is well off (2.5 px before the rig framed 0.34 m)
     assert np.median(across) < 0.5 and across.max() < 1.5
     assert np.median(after) < 0.3 * np.median(before)
     # silhouettes meet the curves

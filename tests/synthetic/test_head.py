@@ -95,8 +95,9 @@ def test_uv_atlas(subj):
     a, b, cc = T[fid, 0], T[fid, 1], T[fid, 2]
     v0, v1, v2 = b - a, cc - a, np.stack([c, r], 1) - a
     den = v0[:, 0] * v1[:, 1] - v1[:, 0] * v0[:, 1]
-    l1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
-    l2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
+    with np.errstate(invalid="ignore", divide="ignore"):   # zero-area sliver triangles own no texel
+        l1 = (v2[:, 0] * v1[:, 1] - v1[:, 0] * v2[:, 1]) / den
+        l2 = (v0[:, 0] * v2[:, 1] - v2[:, 0] * v0[:, 1]) / den
     ok = np.minimum(np.minimum(l1, l2), 1 - l1 - l2) > 0.02
     texel = (r * res + c)[ok]
     ch = chart[fid[ok]]
