@@ -41,7 +41,8 @@ from .dots import DotFilter, face_mask, peak_near
 from .hand import HandInputs, Template, read_hand_inputs
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
 from .proxies import proxies_for
-from .snap import Views, dot_graph, progressive_snap, snap, view_weights
+from .consensus import consensus_snap, free_peaks, view_peaks
+from .snap import Views, _predict_from_neighbours, dot_graph, progressive_snap, snap, view_weights
 from .texcoords import texture_coordinates
 from .triangulate import triangulate
 from .visibility import Visibility
@@ -75,6 +76,19 @@ class Options:
     remove_unregistered: bool = True  #: also paint out dots detected in 2-D but not registered
     unregistered_strength: float = 0.5  #: ... when their dot strength in the view reaches this
     movable_rings: int = 2          #: non-fiducial vertices this close to a margin follow it
+    consensus: bool = True          #: after the progressive snap, the image-space consensus pass (.consensus)
+    consensus_min_peak: float = 0.1   #: ... dots in a view: strength-map maxima at least this
+    consensus_min_cos: float = 0.1    #: ... views more oblique than this (cosine) are not used
+    consensus_search_px: float = 5.0  #: ... peaks this near the projected start
+    consensus_max_spacing: float = 0.5  #: ... and at most this fraction of the dots' spacing (shifts: 1.5 ×)
+    consensus_min_spacing_px: float = 6.0  #: ... only where the dots are at least this far apart (pixels): closer,
+    #:                                        oblique views merge neighbouring dots (tiny preset: 4.6 px, off)
+    consensus_taken_px: float = 1.0   #: ... a peak this near a registered fiducial's projection is taken
+    consensus_shifts_px: tuple = (1.5, 3.0, 4.5, 6.0, 7.5)  #: ... hypotheses this near the start, step by step
+    consensus_two_view_reproj: float = 0.3    #: ... a dot seen by two views only: they agree to this (px)
+    consensus_two_view_strength: float = 0.2  #: ... and both peaks at least this
+    consensus_strong: float = 0.5     #: ... or, weaker than this,
+    consensus_weak_shift_px: float = 1.5  #: ... it lies this near the start
 
 
 @dataclass
@@ -113,6 +127,8 @@ class Registrar:
         self.dots = self.tpl.dot_ids
         self.is_dot = self.tpl.is_dot
         self.neighbours = dot_graph(self.tpl.n_vertices, self.tpl.triangles, self.is_dot)
+        self.rings2 = [np.unique(np.concatenate([nb] + [self.neighbours[u] for u in nb])) if len(nb) else nb
+                       for nb in self.neighbours]
         margins = self.tpl.margin_ids()
         self.extras = np.flatnonzero(~self.is_dot)
         if margins.size:
@@ -209,11 +225,19 @@ class Registrar:
         e.report["search_radius_px"] = round(radius / self.fp, 3)
         r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
-                             max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp))
+                             max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp),
+                             two_view_max_shift=None if e.name == self.neutral else radius + o.step_px * self.fp)
         X, snapped = r.X.copy(), r.snapped.copy()
-        # polish: visibility from the registered mesh, then a small re-snap of every registered dot
+        rescued = np.zeros(len(X), bool)
+        if o.consensus and self.spacing / self.fp >= o.consensus_min_spacing_px:
+            rescued = self.consensus_pass(e, views, pred, X, snapped, known)
+        elif o.consensus:
+            e.report["consensus"] = {"skipped": f"dots {self.spacing / self.fp:.1f} px apart, below "
+                                                f"{o.consensus_min_spacing_px} px"}
+        # polish: visibility from the registered mesh, then a small re-snap of every registered dot (those
+        # the consensus pass placed are triangulated from their peaks already)
         vis2 = view_weights(*self.vis(X, self.cams, min_cos=o.min_cos, return_cos=True))
-        ids = self.dots[snapped[self.dots]]
+        ids = self.dots[snapped[self.dots] & ~rescued[self.dots]]
         p = snap(views, X[ids], vis2[:, ids], radius=1.0 * self.fp, step=0.25 * self.fp, max_reproj=o.max_reproj)
         good = p.ok & (p.strength >= 0.5 * o.min_strength)
         X[ids[good]] = p.X[good]
@@ -235,6 +259,62 @@ class Registrar:
             "views_per_dot": _stats(nviews[self.dots][nviews[self.dots] > 0].astype(float)),
         })
         return X, snapped, r
+
+    def consensus_pass(self, e: Expr, views: Views, pred: np.ndarray, X: np.ndarray, snapped: np.ndarray,
+                       known: dict) -> np.ndarray:
+        """The image-space consensus snap (:mod:`.consensus`) of the fiducials the progressive snap left, in
+        the progressive snap's spirit: hypotheses near their start first (``consensus_shifts_px``, growing),
+        repeated at each step while points join — every point registered improves its neighbours' starts
+        and takes its own image dots. Updates ``X`` and ``snapped`` in place; returns the (T,) mask of the
+        points it registered."""
+        o = self.opt
+        T = len(X)
+        in_S = snapped.copy()
+        kid = np.array(sorted(known), np.int64)
+        in_S[kid] = True
+        is_reg = snapped.copy()
+        is_reg[kid[self.is_dot[kid]]] = True
+        peaks = [view_peaks(m, o.consensus_min_peak, views.centroid_sigma) for m in views.maps]
+        rescued = np.zeros(T, bool)
+        per_step, rejected = [], {}
+        sep = max(1.5 * self.tpl.dot_radius, self.fp)
+        # at low resolutions the dots are a few pixels apart: the search and the shifts stay below the spacing
+        spacing_px = self.spacing / self.fp
+        search_px = min(o.consensus_search_px, o.consensus_max_spacing * spacing_px)
+        shifts = sorted({min(s_, 1.5 * o.consensus_max_spacing * spacing_px) for s_ in o.consensus_shifts_px})
+        for shift_px in shifts:
+            n_step = 0
+            for _ in range(10):
+                rest = self.dots[~is_reg[self.dots]]
+                if rest.size == 0:
+                    break
+                start = _predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
+                Xm = X.copy()
+                Xm[rest] = start
+                vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
+                cos = np.nan_to_num(cos, nan=1.0)
+                reg_ids = self.dots[is_reg[self.dots]]
+                free = free_peaks(peaks, self.cams, X[reg_ids], (vis & (cos > -0.3))[:, reg_ids],
+                                  o.consensus_taken_px)
+                res = consensus_snap(self.cams, peaks, free, start, (vis & (cos > o.consensus_min_cos))[:, rest],
+                                     X[reg_ids], max_shift=shift_px * self.fp,
+                                     weak_shift=o.consensus_weak_shift_px * self.fp,
+                                     search_px=search_px, max_reproj=o.max_reproj,
+                                     two_view_reproj=o.consensus_two_view_reproj,
+                                     two_view_strength=o.consensus_two_view_strength,
+                                     strong=o.consensus_strong, merge_radius=sep, min_separation=sep)
+                rejected = res.rejected
+                if res.accepted.size == 0:
+                    break
+                ids = rest[res.accepted]
+                X[ids] = res.X
+                snapped[ids] = is_reg[ids] = in_S[ids] = rescued[ids] = True
+                n_step += len(ids)
+            per_step.append(n_step)
+        e.report["consensus"] = {"search_px": round(search_px, 3), "shifts_px": [round(s_, 3) for s_ in shifts],
+                                 "registered_per_step": per_step,
+                                 "registered": np.flatnonzero(rescued).tolist(), "left": rejected}
+        return rescued
 
     def _duplicates(self, X, snapped, pred) -> np.ndarray:
         from scipy.spatial import cKDTree

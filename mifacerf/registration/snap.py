@@ -110,7 +110,8 @@ def _grid_search(views: Views, X0: np.ndarray, vis: np.ndarray, offsets: np.ndar
 
 def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: float,
          max_reproj: float = 1.0, min_view_strength: float = 0.25, chunk: int = 256,
-         prior: float = 0.4, two_view_max_px: float | None = 2.0) -> SnapResult:
+         prior: float = 0.4, two_view_max_px: float | None = 2.0,
+         two_view_max_shift: float | None = None) -> SnapResult:
     """3-D snap of points ``X0`` (M, 3) with visibility ``vis`` (C, M); see the module docstring.
 
     ``vis`` may hold float weights per view (0 = not visible): :func:`view_weights` compensates the
@@ -120,7 +121,10 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
     preference for the predicted position that settles two-view ambiguities (a wrong pair of
     dots on corresponding epipolar lines) in favour of the nearer candidate; ``two_view_max_px``:
     a point found in only two views must project within this many pixels of its start in both
-    (the third view that would expose a phantom is missing).
+    (the third view that would expose a phantom is missing); ``two_view_max_shift`` (metres): and lie
+    this near its start in 3-D (a wrong dot in one oblique view and the right one in the other meet at
+    a point shifted in depth, which the image-space tests barely see; None where the start's depth is
+    itself uncertain, as for points a user clicked in two views).
     """
     X0 = np.asarray(X0, np.float64).reshape(-1, 3)
     M = len(X0)
@@ -154,8 +158,11 @@ def snap(views: Views, X0: np.ndarray, vis: np.ndarray, radius: float, step: flo
             shift = np.linalg.norm(cam.project(Xt[m])[0] - cam.project(Xf[m])[0], axis=1)
             ok[np.flatnonzero(m)[shift > 1.5]] = False
     # two views alone can agree on a phantom (any two dots on corresponding epipolar lines): a
-    # two-view answer must stay near the start in both images
+    # two-view answer must stay near the start in both images (and in 3-D)
     two = ok & (tr.n_views == 2)
+    if two_view_max_shift is not None:
+        ok &= ~(two & (np.linalg.norm(np.nan_to_num(tr.points, nan=1e9) - X0, axis=1) > two_view_max_shift))
+        two &= ok
     if two.any() and two_view_max_px is not None:
         for c, cam in enumerate(views.cams):
             m = two & tr.used[c]
@@ -267,7 +274,8 @@ def _predict_from_neighbours(pred, X, in_S, ids, neighbours, rings2, max_anchors
 def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbours: list[np.ndarray],
                      known: dict, vis: np.ndarray, radius: float, step: float, decay: float = 0.8,
                      floor: float = 0.1, min_strength: float = 0.8, max_reproj: float = 1.0,
-                     known_radius: float | None = None, min_separation: float = 0.0) -> ProgressiveResult:
+                     known_radius: float | None = None, min_separation: float = 0.0,
+                     two_view_max_shift: float | None = None) -> ProgressiveResult:
     """The paper's progressive snap (module docstring).
 
     ``pred`` (T, 3) morph predictions of all template vertices; ``dots`` ids to register;
@@ -275,7 +283,8 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
     known positions (coarse points); ``vis`` (C, T) visibility from the current mesh estimate.
     ``radius`` / ``step`` of the 3-D search (metres); ``known_radius`` the search about a known
     point (default ``radius / 2``); ``min_separation`` (metres): a snap landing closer than this to
-    a point already registered is refused (it found that point's dot, not its own).
+    a point already registered is refused (it found that point's dot, not its own);
+    ``two_view_max_shift``: see :func:`snap`.
     """
     pred = np.asarray(pred, np.float64)
     T = len(pred)
@@ -338,7 +347,8 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
             redo = ~(np.linalg.norm(start - last_start[border], axis=1) < 0.1 * step)
             if redo.any():
                 rb = border[redo]
-                r = snap(views, start[redo], vis[:, rb], radius, step, max_reproj)
+                r = snap(views, start[redo], vis[:, rb], radius, step, max_reproj,
+                         two_view_max_shift=two_view_max_shift)
                 attempts += len(rb)
                 last_start[rb] = start[redo]
                 cache_X[rb], cache_s[rb], cache_ok[rb] = r.X, r.strength, r.ok
@@ -367,7 +377,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         w = 1.0 / (d + 1e-3) ** 2
         off = (w @ offset[sid]) / w.sum(1, keepdims=True)
         start = pred[rest] + off
-        r = snap(views, start, vis[:, rest], radius, step, max_reproj)
+        r = snap(views, start, vis[:, rest], radius, step, max_reproj, two_view_max_shift=two_view_max_shift)
         attempts += len(rest)
         acc = r.ok & (r.strength >= t_floor)
         a_ids = _exclusive(rest[acc], _scatter(T, rest, r.X), np.flatnonzero(in_S & is_target), X, start[acc],

@@ -91,3 +91,24 @@ def test_dot_graph_links_dots_through_non_dots():
     assert set(nb[0]) == {2, 4} or set(nb[0]) == {2}
     assert 0 in nb[2] and 4 in nb[2]
     assert all(is_dot[n].all() for n in nb)
+
+
+def test_two_view_snap_refuses_a_phantom_shifted_in_depth(rig):
+    """Two views with a short baseline (one yaw, pitch ±10°): the right dot in one and a different dot in the
+    other, a little off its epipolar line, meet at a point a centimetre deeper. Both images move by little
+    more than a pixel, so only the 3-D bound exposes it."""
+    cams, X = rig
+    fp = cams[0].pixel_footprint(1.3)
+    t = 24
+    ray = X[t] - cams[1].centre
+    Xp = X[t] + 0.010 * ray / np.linalg.norm(ray)          # same pixel in cam1, deeper
+    maps = [np.zeros((128, 128), np.float32) for _ in cams]
+    maps[1] = maps_for(cams, X[t:t + 1])[1]
+    maps[4] = maps_for(cams, Xp[None])[4]
+    views = Views(cams, maps, centroid_sigma=1.3)
+    vis = np.zeros((len(cams), 1), bool)
+    vis[[1, 4], 0] = True
+    free = snap(views, X[t:t + 1], vis, radius=3 * fp, step=0.5 * fp)
+    assert free.ok[0] and np.linalg.norm(free.X[0] - Xp) < 0.5 * fp     # the phantom, without the bound
+    bounded = snap(views, X[t:t + 1], vis, radius=3 * fp, step=0.5 * fp, two_view_max_shift=3.5 * fp)
+    assert not bounded.ok[0]
