@@ -264,11 +264,12 @@ class Renderer:
         colour = np.zeros((len(idx), 3))
         covered = np.zeros(len(idx), bool)
         sk = np.flatnonzero(on_skin)
-        c_sk, cov_sk, fell_back = lit.shade(to_jit(mi.UInt32, hits.tri[idx[sk]]),
-                                           to_jit(mi.Vector3f, hits.bary[idx[sk]].T))
-        colour[sk] = from_jit(c_sk)
-        covered[sk] = np.asarray(cov_sk).astype(bool)
-        stats.fallback_samples += int(np.asarray(fell_back).sum())
+        if sk.size:   # a camera that sees no skin (looking away) has nothing to shade
+            c_sk, cov_sk, fell_back = lit.shade(to_jit(mi.UInt32, hits.tri[idx[sk]]),
+                                               to_jit(mi.Vector3f, hits.bary[idx[sk]].T))
+            colour[sk] = from_jit(c_sk)
+            covered[sk] = np.asarray(cov_sk).astype(bool)
+            stats.fallback_samples += int(np.asarray(fell_back).sum())
         stats.add_time("shade", time.perf_counter() - t0)
 
         if use_parts and (~on_skin).any():

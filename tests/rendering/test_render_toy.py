@@ -113,3 +113,24 @@ def test_exact_kernels_agree_with_the_dense_numpy_reference(toy):
     dense = dense_render(r, target, W, cam, env, spp=1)
     np.testing.assert_array_equal(fast[..., 3], dense[..., 3])
     assert psnr_(fast, dense, fast[..., 3] > 0) > 60.0  # float32 vs float64 rounding only
+
+
+@pytest.mark.parametrize("eye, covered", [([1.3, 0.0, -0.2], True),     # 99° from the front: beside the head
+                                          ([0.0, 0.1, -1.3], True),     # from behind
+                                          ([0.0, 0.0, 1.3], False)])    # looking away from the face
+def test_camera_far_outside_the_captured_views(toy, eye, covered):
+    """Outside the cameras' hull the view falls back to the hull's nearest edge (documented in
+    rendering/views.py): the image is finite, non-negative and counted as a fall-back; a camera that sees
+    nothing of the face gives an empty, transparent image, not NaN."""
+    root, cap, model, rig = toy
+    target = [0, 0, 0] if covered else [0, 0, 3.0]
+    cam = Camera.look_at("far", eye, target, width=32, height=32, focal=rig.cameras[0].K[0, 0] * 32 / 48)
+    stats = RenderStats()
+    img = Renderer(model).render(model.vertices[0], one_hot(model, "neutral"), cam, E.generated("sky", 32),
+                                 spp=1, stats=stats)
+    assert np.isfinite(img).all() and (img >= 0).all()
+    if covered:
+        assert (img[..., 3] > 0.5).sum() > 20 and img[..., :3].max() > 0
+        assert stats.fallback_samples > 0
+    else:
+        assert img.max() == 0
