@@ -4,34 +4,18 @@ import pytest
 
 from mifacerf.registration.consensus import consensus_snap, free_peaks, hypotheses, view_peaks
 from mifacerf.registration.triangulate import project_all
-from mifacerf.rig import CAMERA_LAYOUTS, camera_ring
 
-
-def paint(cams, X, seen, size=128, sigma=0.9, weights=None):
-    """Strength maps: a Gaussian blob per point in the views where ``seen`` (C, N) says it shows."""
-    yy, xx = np.mgrid[0:size, 0:size]
-    uv = project_all(cams, X)
-    out = []
-    for c in range(len(cams)):
-        m = np.zeros((size, size))
-        for k in np.flatnonzero(seen[c]):
-            w = 1.0 if weights is None else weights[k]
-            m = np.maximum(m, w * np.exp(-((xx - uv[c, k, 0]) ** 2 + (yy - uv[c, k, 1]) ** 2) / (2 * sigma ** 2)))
-        out.append(m.astype(np.float32))
-    return out
+from .dotmaps import dot_grid, strength_maps
 
 
 @pytest.fixture(scope="module")
 def rig():
-    cams = camera_ring(CAMERA_LAYOUTS[6], width=128, height=128, seed=2)
-    g = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 7), np.linspace(-0.06, 0.06, 8)), -1).reshape(-1, 2)
-    X = np.stack([g[:, 0], g[:, 1], 0.09 - 3 * (g[:, 0] ** 2 + g[:, 1] ** 2)], 1)
-    fp = cams[0].pixel_footprint(1.3)
-    return cams, X, fp
+    cams, X = dot_grid()
+    return cams, X, cams[0].pixel_footprint(1.3)
 
 
 def setup(cams, X, target, seen, weights=None):
-    maps = paint(cams, X, seen, weights=weights)
+    maps = strength_maps(cams, X, seen, weights=weights)
     peaks = [view_peaks(m, 0.1, 1.3) for m in maps]
     others = np.setdiff1d(np.arange(len(X)), target)
     vis_all = np.ones((len(cams), len(X)), bool)
@@ -41,7 +25,7 @@ def setup(cams, X, target, seen, weights=None):
 
 def test_view_peaks_are_sub_pixel(rig):
     cams, X, fp = rig
-    maps = paint(cams, X, np.ones((len(cams), len(X)), bool))
+    maps = strength_maps(cams, X)
     pk = view_peaks(maps[0], 0.1, 1.3)
     uv = project_all(cams, X)[0]
     uv = uv[(uv >= 2).all(1) & (uv <= 125).all(1)]

@@ -3,30 +3,13 @@ import numpy as np
 import pytest
 
 from mifacerf.registration.snap import Views, ball, dot_graph, progressive_snap, snap
-from mifacerf.registration.triangulate import project_all
-from mifacerf.rig import CAMERA_LAYOUTS, camera_ring
 
-
-def maps_for(cams, X, sigma=0.9, size=128, weights=None):
-    yy, xx = np.mgrid[0:size, 0:size]
-    uv = project_all(cams, X)
-    out = []
-    for c in range(len(cams)):
-        m = np.zeros((size, size))
-        for k, (u, v) in enumerate(uv[c]):
-            if np.isfinite(u):
-                w = 1.0 if weights is None else weights[k]
-                m = np.maximum(m, w * np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2)))
-        out.append(m.astype(np.float32))
-    return out
+from .dotmaps import dot_grid, strength_maps
 
 
 @pytest.fixture(scope="module")
 def rig():
-    cams = camera_ring(CAMERA_LAYOUTS[6], width=128, height=128, seed=2)
-    g = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 7), np.linspace(-0.06, 0.06, 8)), -1).reshape(-1, 2)
-    X = np.stack([g[:, 0], g[:, 1], 0.09 - 3 * (g[:, 0] ** 2 + g[:, 1] ** 2)], 1)
-    return cams, X
+    return dot_grid()
 
 
 def test_ball_offsets():
@@ -37,7 +20,7 @@ def test_ball_offsets():
 
 def test_snap_finds_dots_to_a_fraction_of_a_pixel(rig, rng):
     cams, X = rig
-    views = Views(cams, maps_for(cams, X), centroid_sigma=1.3)
+    views = Views(cams, strength_maps(cams, X), centroid_sigma=1.3)
     fp = cams[0].pixel_footprint(1.3)
     start = X + rng.normal(0, 1.0 * fp, X.shape)
     vis = np.ones((len(cams), len(X)), bool)
@@ -50,7 +33,7 @@ def test_snap_finds_dots_to_a_fraction_of_a_pixel(rig, rng):
 
 def test_snap_without_a_dot_does_not_succeed(rig):
     cams, X = rig
-    views = Views(cams, maps_for(cams, X[:10]))
+    views = Views(cams, strength_maps(cams, X[:10]))
     fp = cams[0].pixel_footprint(1.3)
     vis = np.ones((len(cams), 1), bool)
     r = snap(views, X[20:21], vis, radius=2 * fp, step=0.5 * fp)
@@ -66,7 +49,7 @@ def test_progressive_snap_propagates_offsets_and_marks_failures(rig, rng):
     pred = X - shift + rng.normal(0, 0.3 * fp, X.shape)
     missing = 27                                     # this dot was never painted
     present = np.setdiff1d(np.arange(len(X)), [missing])
-    views = Views(cams, maps_for(cams, X[present]), centroid_sigma=1.3)
+    views = Views(cams, strength_maps(cams, X[present]), centroid_sigma=1.3)
     from scipy.spatial import Delaunay
     F = Delaunay(X[:, :2]).simplices
     nb = dot_graph(len(X), F, np.ones(len(X), bool))
@@ -103,8 +86,8 @@ def test_two_view_snap_refuses_a_phantom_shifted_in_depth(rig):
     ray = X[t] - cams[1].centre
     Xp = X[t] + 0.010 * ray / np.linalg.norm(ray)          # same pixel in cam1, deeper
     maps = [np.zeros((128, 128), np.float32) for _ in cams]
-    maps[1] = maps_for(cams, X[t:t + 1])[1]
-    maps[4] = maps_for(cams, Xp[None])[4]
+    maps[1] = strength_maps(cams, X[t:t + 1])[1]
+    maps[4] = strength_maps(cams, Xp[None])[4]
     views = Views(cams, maps, centroid_sigma=1.3)
     vis = np.zeros((len(cams), 1), bool)
     vis[[1, 4], 0] = True
