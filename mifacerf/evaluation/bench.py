@@ -77,6 +77,7 @@ def worker(job_path: str, config: str) -> None:
         idx = np.arange(face.model.n_lights)
         keep = idx[((idx // n_str) % step == 0) & ((idx % n_str) % step == 0)]
         face.renderer = Renderer(face.model, lights=keep)
+    face.renderer.cache_frames = False   # the warm-up frame repeats frame 1: time real renders
     env = face.environment(job["env"])
     times, stages = [], []
     for i, fr in enumerate([job["frames"][0]] + job["frames"]):

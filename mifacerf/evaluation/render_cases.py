@@ -117,6 +117,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
         classes = classify_pixels(sc, cam, spp=4)
         mask = face_mask(classes) & (truth[..., 3] > 0.999)
         stats = RenderStats()
+        face.renderer.cache_frames = False   # time a real render, not the unchanged-frame cache
         face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=spp)  # warm (kernels, fields)
         t0 = time.perf_counter()
         img = face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=spp, stats=stats)
