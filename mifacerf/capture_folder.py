@@ -115,6 +115,20 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
+def read_json_manifest(path: Path, fmt: str, version: int, error: type[Exception], missing: str, what: str) -> dict:
+    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version``; otherwise ``error``
+    naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or ``"not a version-N <what>"``."""
+    if not path.exists():
+        raise error(f"{path}: {missing}")
+    try:
+        meta = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise error(f"{path}: not valid JSON ({exc})") from exc
+    if meta.get("format") != fmt or meta.get("version") != version:
+        raise error(f"{path}: not a version-{version} {what}")
+    return meta
+
+
 def write_json_atomic(path: str | os.PathLike, data: dict) -> None:
     atomic_write_bytes(path, (json.dumps(data, indent=1) + "\n").encode())
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture_folder import Capture, write_json_atomic
+from .capture_folder import Capture, read_json_manifest, write_json_atomic
 
 FORMAT = "mifacerf.registration"
 VERSION = 1
@@ -92,15 +92,8 @@ class Registration:
 
     def __init__(self, root: str | os.PathLike, capture: Capture | None = None):
         self.root = Path(root)
-        path = self.root / "registration.json"
-        if not path.exists():
-            raise RegistrationError(f"{path}: missing; run 'mifacerf register' first")
-        try:
-            self.meta = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise RegistrationError(f"{path}: not valid JSON ({exc})") from exc
-        if self.meta.get("format") != FORMAT or self.meta.get("version") != VERSION:
-            raise RegistrationError(f"{path}: not a version-{VERSION} mifacerf registration")
+        self.meta = read_json_manifest(self.root / "registration.json", FORMAT, VERSION, RegistrationError,
+                                       "missing; run 'mifacerf register' first", "mifacerf registration")
         tpath = self.root / "template.json"
         if not tpath.exists():
             raise RegistrationError(f"{tpath}: missing")

@@ -23,7 +23,6 @@ read (memory-mapped) the first time a render needs that (expression, camera).
 """
 from __future__ import annotations
 
-import json
 import os
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..capture_folder import write_json_atomic
+from ..capture_folder import read_json_manifest, write_json_atomic
 
 FORMAT = "mifacerf.model"
 VERSION = 1
@@ -85,15 +84,9 @@ class Model:
 
     def __init__(self, root: str | os.PathLike, cache_bytes: int = 4 << 30):
         self.root = Path(root)
-        mpath = self.root / "model.json"
-        if not mpath.exists():
-            raise ModelError(f"{mpath}: missing; build a model with 'mifacerf build CAPTURE -o MODEL'")
-        try:
-            self.meta = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise ModelError(f"{mpath}: not valid JSON ({exc})") from exc
-        if self.meta.get("format") != FORMAT or self.meta.get("version") != VERSION:
-            raise ModelError(f"{mpath}: not a version-{VERSION} mifacerf model")
+        self.meta = read_json_manifest(self.root / "model.json", FORMAT, VERSION, ModelError,
+                                       "missing; build a model with 'mifacerf build CAPTURE -o MODEL'",
+                                       "mifacerf model")
         self.cameras = [Camera.from_dict(c) for c in self.meta["cameras"]]
         self.light_directions = np.asarray(self.meta["lights"]["directions"], np.float64)
         self.solid_angles = np.asarray(self.meta["lights"]["solid_angles"], np.float64)

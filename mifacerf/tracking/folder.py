@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..capture_folder import write_json_atomic
+from ..capture_folder import read_json_manifest, write_json_atomic
 from ..imageio import ImageFileError, read_exr, write_exr
 
 FORMAT = "mifacerf.performance"
@@ -52,14 +52,9 @@ class PerformanceFolder:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
         path = self.root / "manifest.json"
-        if not path.exists():
-            raise PerformanceError(f"{path}: missing (not a performance folder, or its recording did not finish)")
-        try:
-            self.meta = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise PerformanceError(f"{path}: not valid JSON ({exc})") from exc
-        if self.meta.get("format") != FORMAT or self.meta.get("version") != VERSION:
-            raise PerformanceError(f"{path}: not a version-{VERSION} {FORMAT} manifest")
+        self.meta = read_json_manifest(path, FORMAT, VERSION, PerformanceError,
+                                       "missing (not a performance folder, or its recording did not finish)",
+                                       f"{FORMAT} manifest")
         try:
             self.cameras = [Camera.from_dict(c) for c in self.meta["cameras"]]
             self.fps = float(self.meta["fps"])

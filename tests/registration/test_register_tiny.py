@@ -8,26 +8,12 @@ fiducial must be seen by two views to be triangulated, which only ~55 % of them 
 preset's numbers are in docs/registration.md.
 """
 import shutil
-import sys
 
 import numpy as np
 import pytest
+from openwatch import watch_opens
 
 TINY_EXPRESSIONS = ["neutral", "viseme_aa", "head_turn_left"]
-_WATCH = {"root": None, "opened": []}
-
-
-def _audit(event, args):
-    root = _WATCH["root"]
-    if root is not None and event == "open" and args and isinstance(args[0], (str, bytes)):
-        path = args[0].decode() if isinstance(args[0], bytes) else args[0]
-        if path.startswith(root):
-            _WATCH["opened"].append(path)
-
-
-sys.addaudithook(_audit)
-
-
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     from mifacerf.registration import register_capture
@@ -37,20 +23,17 @@ def tiny(tmp_path_factory):
     cap = synthesize(root / "synth", preset="tiny", expressions=TINY_EXPRESSIONS, progress=False)
     truth = root / "hidden-truth"
     shutil.move(str(root / "synth" / "truth"), truth)
-    _WATCH["root"] = str(truth)
-    try:
+    with watch_opens(truth) as opened:
         out = register_capture(cap, progress=False)
-    finally:
-        _WATCH["root"] = None
-    return cap, truth, out
+    return cap, truth, out, opened
 
 
 @pytest.mark.slow
 def test_tiny_registration_against_truth(tiny):
     from mifacerf.registration.report import evaluate
 
-    cap, truth, out = tiny
-    assert _WATCH["opened"] == [], "registration opened ground-truth files"
+    cap, truth, out, opened = tiny
+    assert opened == [], "registration opened ground-truth files"
     res = evaluate(cap, truth, out)
     rows = res["per_expression"]
     assert sorted(rows) == sorted(TINY_EXPRESSIONS)
@@ -73,7 +56,7 @@ def test_tiny_outputs_feed_the_model_build(tiny):
     from mifacerf.registered import Registration
     from mifacerf.rendering.build import template_arrays
 
-    cap, truth, out = tiny
+    cap, truth, out, _ = tiny
     reg = Registration(out)
     t = template_arrays(reg.template)
     assert t["fiducial"].sum() == 300 and t["n_vertices"] == len(reg.expression("neutral").vertices)

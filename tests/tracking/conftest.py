@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,35 +18,6 @@ import pytest
 
 EXPRESSIONS = ["neutral", "smile", "viseme_aa"]
 SECONDS = 0.4
-_WATCH = {"root": None, "opened": []}
-
-
-def _audit(event, args):
-    root = _WATCH["root"]
-    if root is not None and event == "open" and args and isinstance(args[0], (str, bytes)):
-        path = args[0].decode() if isinstance(args[0], bytes) else args[0]
-        if path.startswith(root):
-            _WATCH["opened"].append(path)
-
-
-sys.addaudithook(_audit)
-
-
-class watch_truth:
-    """Context manager: records every file opened under ``root`` (an audit hook)."""
-
-    def __init__(self, root):
-        self.root = str(Path(root).resolve())
-
-    def __enter__(self):
-        _WATCH["opened"] = []
-        _WATCH["root"] = self.root
-        return _WATCH["opened"]
-
-    def __exit__(self, *exc):
-        _WATCH["root"] = None
-
-
 def test_cameras(size: int = 96):
     from mifacerf.rig import camera_ring
 

@@ -5,7 +5,8 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import copy_performance, watch_truth
+from conftest import copy_performance
+from openwatch import watch_opens
 
 
 def test_clean_track_against_truth(world):
@@ -39,7 +40,7 @@ def test_tracking_reads_only_the_performance_folder(world, tmp_path):
     from mifacerf.tracking.track import Track, track_performance
 
     lone = copy_performance(world["perf"], tmp_path / "alone" / "performance")
-    with watch_truth(world["out"] / "truth") as opened:
+    with watch_opens(world["out"] / "truth") as opened:
         a = Track(track_performance(lone, tmp_path / "t1", model=world["model"], progress=False, frames=14))
         b = Track(track_performance(world["perf"], tmp_path / "t2", model=world["model"], progress=False,
                                      frames=14))
