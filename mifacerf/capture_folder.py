@@ -115,15 +115,21 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def read_json_manifest(path: Path, fmt: str, version: int, error: type[Exception], missing: str, what: str) -> dict:
-    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version``; otherwise ``error``
-    naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or ``"not a version-N <what>"``."""
+def read_json(path: Path, error: type[Exception], missing: str) -> dict:
+    """The JSON document at ``path``; otherwise ``error`` naming the file: ``"<path>: <missing>"`` when
+    absent, ``"<path>: not valid JSON (...)"``."""
     if not path.exists():
         raise error(f"{path}: {missing}")
     try:
-        meta = json.loads(path.read_text())
+        return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
         raise error(f"{path}: not valid JSON ({exc})") from exc
+
+
+def read_json_manifest(path: Path, fmt: str, version: int, error: type[Exception], missing: str, what: str) -> dict:
+    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version``; otherwise ``error``
+    naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or ``"not a version-N <what>"``."""
+    meta = read_json(path, error, missing)
     if meta.get("format") != fmt or meta.get("version") != version:
         raise error(f"{path}: not a version-{version} {what}")
     return meta
@@ -141,13 +147,7 @@ class Capture:
         mpath = self.root / "manifest.json"
         if not self.root.is_dir():
             raise CaptureError(f"{self.root}: no such capture folder")
-        if not mpath.exists():
-            raise CaptureError(f"{mpath}: missing; the capture is incomplete (the manifest is written last)")
-        try:
-            m = json.loads(mpath.read_text())
-        except json.JSONDecodeError as exc:
-            raise CaptureError(f"{mpath}: not valid JSON ({exc})") from exc
-        self.manifest = m
+        self.manifest = read_json(mpath, CaptureError, "missing; the capture is incomplete (the manifest is written last)")
         self._validate(mpath)
 
     # ------------------------------------------------------------- validation
