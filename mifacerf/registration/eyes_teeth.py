@@ -8,7 +8,10 @@
 * **Upper teeth** — rigid with the skull: the head pose itself.
 * **Lower teeth** — "a single marked 3D point, which determines their translation relative
   to the reference expression, and the relative rotation is approximated as the head pose
-  rotation": ``R = R_head``, ``t = p_marked − R_head p_marked,neutral``.
+  rotation": ``t = p_marked − R p_marked,neutral``. Beyond the paper, ``R`` is the jaw's
+  rotation where the chin's fiducials are registered (a rigid fit to them; the registration
+  passes it in), the head's otherwise: an open jaw turns the lower teeth by up to 20° from
+  the head, the chin fit is within 3° on the draft subject.
 * **Eyes** — the irises, marked in several views, give the front of each eye: the centre of
   the iris ellipse fitted in each view is triangulated. Where the subject looks along a
   known direction (at a named camera, or ``"forward"`` along the head's +Z), the eyeball
@@ -89,8 +92,9 @@ def triangulate_marks(cams: list[Camera], marks: dict) -> np.ndarray | None:
     return tr.points[0] if tr.ok[0] else None
 
 
-def lower_teeth_transform(T_head: np.ndarray, mark_neutral: np.ndarray, mark_expr: np.ndarray) -> np.ndarray:
-    R = T_head[:3, :3]
+def lower_teeth_transform(T_turn: np.ndarray, mark_neutral: np.ndarray, mark_expr: np.ndarray) -> np.ndarray:
+    """Lower teeth (4, 4): the rotation of ``T_turn`` (jaw or head), translated so the marked point lands on its mark."""
+    R = T_turn[:3, :3]
     return homogeneous(R, np.asarray(mark_expr) - R @ np.asarray(mark_neutral))
 
 

@@ -50,6 +50,7 @@ from .visibility import Visibility
 
 HEAD = ("ear_L", "ear_R", "nose_bridge")
 RIGID_REGIONS = ("forehead", "nose")    #: template regions that move (almost) with the skull
+JAW_REGIONS = ("chin",)                  #: template regions that move (almost) with the jaw
 
 
 class RegistrationInputError(ValueError):
@@ -418,8 +419,26 @@ class Registrar:
         e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no ear / nose marks)"}
         return ET.robust_rigid(N.vertices[both], X[both])
 
-    def place_teeth(self, name: str, T_head: np.ndarray, e: Expr) -> np.ndarray:
-        """Rigid transforms (2, 4, 4) of the upper and lower teeth (template rest frame → world)."""
+    def jaw_pose(self, X: np.ndarray, status: np.ndarray) -> tuple[np.ndarray | None, int]:
+        """Rigid fit (4, 4) neutral → expression of the registered fiducials of the jaw regions
+        (``JAW_REGIONS``), and how many were used; (None, n) with fewer than three, or with points
+        (nearly) on one line, which leave a rotation about that line undetermined."""
+        if not self.tpl.regions:
+            return None, 0
+        ids = np.concatenate([np.asarray(self.tpl.regions.get(k, []), np.int64) for k in JAW_REGIONS])
+        N = self.registered[self.neutral]
+        ids = np.intersect1d(ids, self.dots)
+        ids = ids[(status[ids] == 1) & (N.status[ids] == 1)]
+        if len(ids) < 3 or np.linalg.svd(N.vertices[ids] - N.vertices[ids].mean(0), compute_uv=False)[1] < 2e-3:
+            return None, len(ids)
+        return ET.rigid_from_points(N.vertices[ids], X[ids]), len(ids)
+
+    def place_teeth(self, name: str, T_head: np.ndarray, e: Expr, X: np.ndarray, status: np.ndarray) -> np.ndarray:
+        """Rigid transforms (2, 4, 4) of the upper and lower teeth (template rest frame → world).
+
+        Lower teeth, beyond the paper (which takes the head's rotation): the rotation of the jaw,
+        fitted to the registered chin fiducials (an open jaw turns the lower teeth by up to 20°
+        relative to the head), with the translation from the marked point."""
         teeth = np.full((2, 4, 4), np.nan)
         if not self.tpl.teeth:
             e.report["teeth"] = "the template has no teeth"
@@ -435,13 +454,15 @@ class Registrar:
             if rot is not None and "lower_teeth" in rot.points:
                 mark = ET.triangulate_marks(self.cams, rot.points["lower_teeth"])
             ref = self.tpl.lower_teeth_point
+            T_jaw, n_jaw = self.jaw_pose(X, status)
+            turn = "head" if T_jaw is None else f"jaw (rigid fit to {n_jaw} registered chin fiducials)"
             if mark is not None and ref is not None:
-                teeth[1] = ET.lower_teeth_transform(T_head, ref, mark)
-                info["lower"] = "marked point + head rotation"
+                teeth[1] = ET.lower_teeth_transform(T_head if T_jaw is None else T_jaw, ref, mark)
+                info["lower"] = f"marked point + rotation of the {turn}"
             else:
-                teeth[1] = T_head
-                info["lower"] = "predicted: no lower-teeth mark in ≥ 2 views; moved with the head"
-                e.flags.append("lower teeth: no marked point in ≥ 2 views; moved with the head (predicted)")
+                teeth[1] = T_head if T_jaw is None else T_jaw
+                info["lower"] = f"predicted: no lower-teeth mark in ≥ 2 views; moved with the {turn}"
+                e.flags.append(f"lower teeth: no marked point in ≥ 2 views; moved with the {turn} (predicted)")
         e.report["teeth"] = info
         return teeth
 
@@ -515,7 +536,7 @@ class Registrar:
             for k, vid in self.tpl.head_points.items():
                 hp.setdefault(k, V[vid])
             self.writer.set_meta("head_points_neutral", {k: np.asarray(v).tolist() for k, v in hp.items()})
-        teeth = self.place_teeth(name, T_head, e)
+        teeth = self.place_teeth(name, T_head, e, V, status)
         eyes = self.eye_centres(T_head)
         uv, visible = texture_coordinates(V, self.cams, self.vis)
         reg = RegisteredExpression(name, V, status, uv, visible, eyes, teeth, T_head)

@@ -15,7 +15,8 @@
   captured images (*before*) and of the dot-free images (*after*, the registration's patches
   applied);
 * **lips and eyelids** — the 3-D error of the margin vertices; **head pose** — rotation
-  (degrees) and translation errors; **teeth** — error of the lower teeth's marked point;
+  (degrees) and translation errors; **teeth** — error of the lower teeth's marked point and of
+  their rotation (degrees);
   **eyes** — eye-centre error (where the truth has eye transforms).
 
 ``python -m mifacerf.registration.report OUT [--registration DIR] [--json FILE]`` prints the table
@@ -127,6 +128,8 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
             Tl = z["part_teeth_lower"]
             row["lower_teeth_m"] = float(np.linalg.norm(apply(r.teeth[1], p_rest[None])[0]
                                                         - apply(Tl, p_rest[None])[0]))
+            dR = r.teeth[1][:3, :3].T @ Tl[:3, :3]
+            row["lower_teeth_rotation_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         if "part_eye_left" in z.files and np.isfinite(r.eye_centres).all():
             from ..synthetic import head as H
 
