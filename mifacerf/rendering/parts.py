@@ -33,6 +33,8 @@ from ..variant import ensure_variant
 from .jitgeom import CAM_PARAMS, bilinear_taps, camera_params, project
 
 PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower", "mouth_interior")
+#: the parts rendered from each reference expression
+GROUPS = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower"), "mouth": ("mouth_interior",)}
 CORNEA_F0 = 0.025  # (n − 1)² / (n + 1)² for the cornea, n ≈ 1.376
 
 
@@ -41,6 +43,15 @@ def sphere_mesh(centre, radius: float, subdivisions: int = 3):
 
     s = trimesh.creation.icosphere(subdivisions, radius=radius)
     return np.asarray(s.vertices) + np.asarray(centre), np.asarray(s.faces)
+
+
+def reference_group(part: str, references: dict) -> str | None:
+    """The reference group of ``part`` in a model's ``references`` (models built before the mouth had
+    its own reference render the interior from the teeth's)."""
+    group = next(g for g, parts in GROUPS.items() if part in parts)
+    if group == "mouth" and group not in references:
+        group = "teeth"
+    return references.get(group)
 
 
 def part_meshes(template: dict) -> dict:
@@ -288,8 +299,9 @@ def visible_part_pixels(reg, name: str, template: dict, triangles, meshes: dict,
 
 
 def choose_references(reg, names: list[str], template: dict, triangles, cameras) -> dict:
-    """The reference expression of the eyes and of the teeth: the expression where they are most visible
-    (paper §6.3), counted by ray casting every registered expression from every camera."""
+    """The reference expression of the eyes, of the teeth and of the mouth's interior: the expression where
+    each is most visible (paper §6.3), counted by ray casting every registered expression from every camera.
+    The interior gets its own (an open mouth) rather than the teeth's (bared teeth hide it)."""
     meshes = part_meshes(template)
     if not meshes:
         return {}
@@ -297,7 +309,7 @@ def choose_references(reg, names: list[str], template: dict, triangles, cameras)
     scene = CombinedScene(first.vertices, triangles, meshes)
     seen = {n: visible_part_pixels(reg, n, template, triangles, meshes, cameras, scene) for n in names}
     out = {}
-    for group, parts in (("eyes", ("eye_left", "eye_right")), ("teeth", ("teeth_upper", "teeth_lower"))):
+    for group, parts in GROUPS.items():
         score = {n: sum(seen[n].get(p, 0) for p in parts) for n in names}
         best = max(names, key=lambda n: score[n])
         if score[best] > 0:
@@ -309,17 +321,16 @@ def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, camera
                       light_directions: np.ndarray) -> dict:
     """Write the eye and teeth fields of their reference expressions (model folder, ``fields/<ref>/<cam>.parts*``).
 
-    ``references``: {"eyes": name, "teeth": name}. Returns {reference name: [parts stored]}.
+    ``references``: {"eyes": name, "teeth": name, "mouth": name}. Returns {reference name: [parts stored]}.
     """
     import os
 
     meshes = part_meshes(template)
     if not meshes:
         return {}
-    groups = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower", "mouth_interior")}
     wanted: dict[str, list] = {}
     for group, ref in references.items():
-        wanted.setdefault(ref, []).extend(p for p in groups[group] if p in meshes)
+        wanted.setdefault(ref, []).extend(p for p in GROUPS[group] if p in meshes)
     neighbours = light_neighbours(light_directions)
     stored = {}
     for ref, want in wanted.items():

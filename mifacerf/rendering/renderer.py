@@ -31,7 +31,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
 from .meshscene import MeshScene
-from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms
+from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms, reference_group
 from .compression import lit_texels_pca
 from .relight import lit_texels, to_device_f16
 
@@ -175,7 +175,7 @@ class Renderer:
         look = -camera.forward
         sampler = self._view_sampler()
         for p, T_t in parts.items():
-            ref = refs.get("eyes" if p.startswith("eye") else "teeth")
+            ref = reference_group(p, refs)
             if ref is None:
                 continue
             s = model.expression_index(ref)
