@@ -16,7 +16,7 @@ import numpy as np
 from ..capture_folder import Capture
 from ..registered import Registration
 from .meshscene import MeshScene
-from .parts import build_part_fields, choose_references
+from .parts import build_part_fields, choose_references, part_sources, part_visibility
 from .model import ModelWriter
 
 
@@ -79,9 +79,12 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
     sources = np.stack([geometry[n].vertices for n in names])
     blend = BlendModel.fit(sources, names.index(neutral), t["triangles"], fiducial_mask=t["fiducial"],
                            regions=t["regions"] if (culling and t["regions"]) else None)
-    references = choose_references(reg, names, reg.template, t["triangles"], cams)
+    visibility = part_visibility(reg, names, reg.template, t["triangles"], cams)
+    references = choose_references(visibility)
+    sources = part_sources(visibility, references)
     writer.extra["references"] = references
-    writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, references,
+    writer.extra["part_sources"] = sources
+    writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, sources,
                                               cap.rig.lights.directions)
     writer.extra["source"] = {"capture": str(Path(capture).resolve()), "registration": str(reg.root.resolve())}
     return writer.finish(blend)

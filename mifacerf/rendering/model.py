@@ -209,8 +209,13 @@ class Model:
 
     @property
     def references(self) -> dict:
-        """{"eyes": expression, "teeth": expression}: the parts' reference expressions."""
+        """{"eyes" / "teeth" / "mouth": expression}: the parts' reference expressions."""
         return dict(self.meta.get("references", {}))
+
+    @property
+    def part_sources(self) -> dict:
+        """{group: [expressions whose part fields are stored]} (older models: the references only)."""
+        return {g: list(v) for g, v in self.meta.get("part_sources", {g: [r] for g, r in self.references.items()}).items()}
 
     @property
     def blend(self):

@@ -13,6 +13,14 @@ camera images (the same point in the part's rigid rest frame), ``R_Δ`` the part
 rotation from the target to the reference (lighting and view rotate with it, §6.1) and
 ``V_l`` the visibility of light ``l`` from ``p``.
 
+**Beyond the paper — the dominant source's own data.** The model also keeps the parts of every
+captured expression where they are well seen (at least half as many pixels as in the reference,
+:func:`part_sources`). A frame whose expression weights near a part (the mouth's or the eye's
+margin vertices) give one such expression at least half the weight renders that part from that
+expression instead of the reference (:func:`frame_reference`): a captured expression, or a blend
+dominated by one, then shows its own teeth, eyes and mouth — the lookups land on the same
+texels, and the visibility ``V_l`` only re-applies shadows its data already holds.
+
 Eyes: the captured sharp corneal highlights are removed from the reference data
 (:func:`remove_specular_peaks`: a light whose response stands far above its light-stage
 neighbours' is clamped to them) and re-synthesised as a glossy cornea lit by the same
@@ -45,13 +53,41 @@ def sphere_mesh(centre, radius: float, subdivisions: int = 3):
     return np.asarray(s.vertices) + np.asarray(centre), np.asarray(s.faces)
 
 
-def reference_group(part: str, references: dict) -> str | None:
-    """The reference group of ``part`` in a model's ``references`` (models built before the mouth had
-    its own reference render the interior from the teeth's)."""
-    group = next(g for g, parts in GROUPS.items() if part in parts)
+def group_of(part: str) -> str:
+    return next(g for g, parts in GROUPS.items() if part in parts)
+
+
+def frame_reference(part: str, references: dict, sources: dict | None = None,
+                    weights: dict | None = None, dominant: float = 0.5) -> str | None:
+    """The expression whose data renders ``part`` in a frame.
+
+    ``references`` {group: expression} (models built before the mouth had its own reference render
+    the interior from the teeth's); ``sources`` {group: [expressions with the part stored]};
+    ``weights`` {group: {expression: weight near the part}}. The source with the largest weight
+    wins if that weight is at least ``dominant``; otherwise the reference.
+    """
+    group = group_of(part)
     if group == "mouth" and group not in references:
         group = "teeth"
+    if sources and weights and weights.get(group):
+        w = weights[group]
+        have = [n for n in sources.get(group, []) if w.get(n, 0.0) > 0]
+        if have:
+            best = max(have, key=lambda n: w[n])
+            if w[best] >= dominant:
+                return best
     return references.get(group)
+
+
+def margin_ids(template: dict) -> dict:
+    """{group: template vertex ids round the part} (the mouth's and eyes' hole loops) for the frame weights."""
+    holes = template.get("holes") or {}
+    out = {}
+    for group, names in (("teeth", ("mouth",)), ("mouth", ("mouth",)), ("eyes", ("eye_left", "eye_right"))):
+        ids = [int(i) for h in names for i in holes.get(h, [])]
+        if ids:
+            out[group] = np.array(sorted(set(ids)), np.int64)
+    return out
 
 
 def part_meshes(template: dict) -> dict:
@@ -298,30 +334,46 @@ def visible_part_pixels(reg, name: str, template: dict, triangles, meshes: dict,
     return counts
 
 
-def choose_references(reg, names: list[str], template: dict, triangles, cameras) -> dict:
-    """The reference expression of the eyes, of the teeth and of the mouth's interior: the expression where
-    each is most visible (paper §6.3), counted by ray casting every registered expression from every camera.
-    The interior gets its own (an open mouth) rather than the teeth's (bared teeth hide it)."""
+def part_visibility(reg, names: list[str], template: dict, triangles, cameras) -> dict:
+    """{expression: {group: pixels where the group's parts are seen}} (ray cast from every camera at 64²)."""
     meshes = part_meshes(template)
     if not meshes:
         return {}
-    first = reg.expression(names[0])
-    scene = CombinedScene(first.vertices, triangles, meshes)
-    seen = {n: visible_part_pixels(reg, n, template, triangles, meshes, cameras, scene) for n in names}
+    scene = CombinedScene(reg.expression(names[0]).vertices, triangles, meshes)
     out = {}
-    for group, parts in GROUPS.items():
-        score = {n: sum(seen[n].get(p, 0) for p in parts) for n in names}
-        best = max(names, key=lambda n: score[n])
-        if score[best] > 0:
+    for n in names:
+        seen = visible_part_pixels(reg, n, template, triangles, meshes, cameras, scene)
+        out[n] = {g: int(sum(seen.get(p, 0) for p in parts)) for g, parts in GROUPS.items()}
+    return out
+
+
+def choose_references(visibility: dict) -> dict:
+    """The reference expression of the eyes, of the teeth and of the mouth's interior: the expression where
+    each is most visible (paper §6.3). The interior gets its own (an open mouth) rather than the teeth's
+    (bared teeth hide it)."""
+    out = {}
+    for group in GROUPS:
+        best = max(visibility, key=lambda n: visibility[n].get(group, 0), default=None)
+        if best is not None and visibility[best].get(group, 0) > 0:
             out[group] = best
     return out
 
 
-def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, cameras, references: dict,
-                      light_directions: np.ndarray) -> dict:
-    """Write the eye and teeth fields of their reference expressions (model folder, ``fields/<ref>/<cam>.parts*``).
+def part_sources(visibility: dict, references: dict, fraction: float = 0.1) -> dict:
+    """{group: [expressions]}: where the group is seen in at least ``fraction`` of its reference's pixels."""
+    out = {}
+    for group, ref in references.items():
+        need = fraction * visibility[ref][group]
+        out[group] = [n for n in visibility if visibility[n].get(group, 0) >= need]
+    return out
 
-    ``references``: {"eyes": name, "teeth": name, "mouth": name}. Returns {reference name: [parts stored]}.
+
+def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, cameras, sources: dict,
+                      light_directions: np.ndarray) -> dict:
+    """Write the eye, teeth and mouth fields of their source expressions (model folder,
+    ``fields/<expression>/<cam>.parts*``).
+
+    ``sources``: {group: [expressions]} (:func:`part_sources`). Returns {expression: [parts stored]}.
     """
     import os
 
@@ -329,8 +381,9 @@ def build_part_fields(writer, reg, template: dict, triangles: np.ndarray, camera
     if not meshes:
         return {}
     wanted: dict[str, list] = {}
-    for group, ref in references.items():
-        wanted.setdefault(ref, []).extend(p for p in GROUPS[group] if p in meshes)
+    for group, names in sources.items():
+        for name in names:
+            wanted.setdefault(name, []).extend(p for p in GROUPS[group] if p in meshes)
     neighbours = light_neighbours(light_directions)
     stored = {}
     for ref, want in wanted.items():

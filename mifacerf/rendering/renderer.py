@@ -31,7 +31,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
 from .meshscene import MeshScene
-from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms, reference_group
+from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms, frame_reference, margin_ids
 from .compression import lit_texels_pca
 from .relight import lit_texels, to_device_f16
 
@@ -83,6 +83,7 @@ class Renderer:
         self._scene = MeshScene(neutral, model.triangles)
         meshes = part_meshes(model.template) if model.references else {}
         self._combined = CombinedScene(neutral, model.triangles, meshes) if meshes else None
+        self._margins = margin_ids(model.template)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self._device: dict[tuple[int, int], object] = {}
 
@@ -167,15 +168,21 @@ class Renderer:
         return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance)
 
     # ------------------------------------------------------------ eyes, teeth
-    def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats) -> PartFrame:
-        """The eyes' and teeth's shading state for target part transforms ``parts`` {part: 4x4 rest→world}."""
+    def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats,
+                   expression_weights: np.ndarray | None = None) -> PartFrame:
+        """The eyes' and teeth's shading state for target part transforms ``parts`` {part: 4x4 rest→world};
+        ``expression_weights`` (T, S) choose each part's source (:func:`.parts.frame_reference`)."""
         model = self.model
         refs = model.references
+        weights = None
+        if expression_weights is not None:
+            weights = {g: dict(zip(model.expressions, np.asarray(expression_weights)[ids].mean(axis=0)))
+                       for g, ids in self._margins.items()}
         info = {}
         look = -camera.forward
         sampler = self._view_sampler()
         for p, T_t in parts.items():
-            ref = reference_group(p, refs)
+            ref = frame_reference(p, refs, model.part_sources, weights)
             if ref is None:
                 continue
             s = model.expression_index(ref)
@@ -274,7 +281,7 @@ class Renderer:
 
         if use_parts and (~on_skin).any():
             t0 = time.perf_counter()
-            pf = self.part_frame(parts, camera, self.light_basis(env), stats)
+            pf = self.part_frame(parts, camera, self.light_basis(env), stats, expression_weights)
             pt = np.flatnonzero(~on_skin)
             tri = hits.tri[idx[pt]]
             label = self._combined.label[tri] - 1
