@@ -49,6 +49,39 @@ def relit_vs_truth(out, environments, expression: str | None = None, camera: str
     return rows
 
 
+def layout_vs_truth(out, layouts: dict, environments, expression: str | None = None, camera: str | None = None,
+                    spp_truth: int = 1024, spp: int = 4) -> list[dict]:
+    """Light-stage design: how well each light layout can relight the subject at all.
+
+    ``layouts`` {name: (L, 3) world unit directions towards the lights}. For each layout and
+    environment, the subject (dots washed off, as the model renders it) is OLAT-rendered with
+    those lights, relit by their spherical-Voronoi weights and compared with the path-traced
+    truth on the template's skin (eyes and teeth excluded: their captured highlights are
+    re-synthesised by the renderer). The error is the discretisation of the environment alone.
+    """
+    from ..synthetic.olat import render_olat
+    from ..synthetic.truth_scene import TruthRenderer
+
+    out = Path(out)
+    cap = Capture(out / "capture")
+    tr = TruthRenderer.from_synth(out)
+    expression = expression or cap.expression_names[0]
+    cam = cap.rig.camera(camera) if camera else cap.rig.cameras[min(1, len(cap.rig.cameras) - 1)]
+    rows = []
+    for env in environments:
+        env = env if isinstance(env, Environment) else resolve(str(env))
+        truth = 0.5 * sum(tr.render(tr.expressions[expression], cam, env, spp=spp_truth, seed=s) for s in (11, 12))
+        sc = tr.scene(env)
+        sc.set_pose(tr.subject.pose(tr.expressions[expression]))
+        skin = classify_pixels(sc, cam)["face"].all(axis=2) & (truth[..., 3] > 0.999)
+        for name, dirs in layouts.items():
+            dirs = np.asarray(dirs, np.float64)
+            relit = relight(render_olat(sc.scene, cam, dirs, spp=spp), light_basis(env, dirs))
+            rows.append({"layout": name, "lights": len(dirs), "environment": env.name, "expression": expression,
+                         "camera": cam.name, "psnr": psnr(relit, truth, skin), "pixels": int(skin.sum())})
+    return rows
+
+
 def markdown_table(rows: list[dict]) -> str:
     lines = ["| environment | PSNR relit OLAT vs path-traced (dB) | truth noise floor (dB) | lights | face pixels |",
              "|---|---|---|---|---|"]
