@@ -215,7 +215,8 @@ class Model:
     @property
     def part_sources(self) -> dict:
         """{group: [expressions whose part fields are stored]} (older models: the references only)."""
-        return {g: list(v) for g, v in self.meta.get("part_sources", {g: [r] for g, r in self.references.items()}).items()}
+        stored = self.meta.get("part_sources") or {g: [r] for g, r in self.references.items()}
+        return {g: list(v) for g, v in stored.items()}
 
     @property
     def blend(self):
