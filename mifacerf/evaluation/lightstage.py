@@ -20,17 +20,23 @@ from .masks import classify_pixels, face_mask
 from .metrics import psnr
 
 
-def relit_vs_truth(out, environments, expression: str | None = None, camera: str | None = None,
-                   spp_truth: int = 1024, progress=None) -> list[dict]:
-    """For each environment (generated name, path or :class:`Environment`): PSNR of the relit capture
-    against path-traced truth, plus the truth's own noise floor."""
+def _subject_view(out, expression: str | None, camera: str | None):
+    """(capture, TruthRenderer, expression name, camera) of a synth output; defaults: the first captured
+    expression, the second camera."""
     from ..synthetic.truth_scene import TruthRenderer
 
     out = Path(out)
     cap = Capture(out / "capture")
-    tr = TruthRenderer.from_synth(out)
     expression = expression or cap.expression_names[0]
     cam = cap.rig.camera(camera) if camera else cap.rig.cameras[min(1, len(cap.rig.cameras) - 1)]
+    return cap, TruthRenderer.from_synth(out), expression, cam
+
+
+def relit_vs_truth(out, environments, expression: str | None = None, camera: str | None = None,
+                   spp_truth: int = 1024, progress=None) -> list[dict]:
+    """For each environment (generated name, path or :class:`Environment`): PSNR of the relit capture
+    against path-traced truth, plus the truth's own noise floor."""
+    cap, tr, expression, cam = _subject_view(out, expression, camera)
     field = cap.field(expression, cam.name)
     rows = []
     envs = list(environments)
@@ -60,13 +66,8 @@ def layout_vs_truth(out, layouts: dict, environments, expression: str | None = N
     re-synthesised by the renderer). The error is the discretisation of the environment alone.
     """
     from ..synthetic.olat import render_olat
-    from ..synthetic.truth_scene import TruthRenderer
 
-    out = Path(out)
-    cap = Capture(out / "capture")
-    tr = TruthRenderer.from_synth(out)
-    expression = expression or cap.expression_names[0]
-    cam = cap.rig.camera(camera) if camera else cap.rig.cameras[min(1, len(cap.rig.cameras) - 1)]
+    _, tr, expression, cam = _subject_view(out, expression, camera)
     rows = []
     for env in environments:
         env = env if isinstance(env, Environment) else resolve(str(env))

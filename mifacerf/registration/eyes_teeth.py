@@ -41,6 +41,11 @@ def apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     return np.asarray(P, np.float64) @ T[:3, :3].T + T[:3, 3]
 
 
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """The angle (degrees) of the rotation (3, 3) ``R``."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
 def rigid_from_points(P_neutral: np.ndarray, P_expr: np.ndarray) -> np.ndarray:
     """The rigid transform (4, 4) that best maps ``P_neutral`` (N ≥ 3, 3) onto ``P_expr``."""
     R, t = horn(np.asarray(P_neutral, np.float64), np.asarray(P_expr, np.float64))

@@ -42,7 +42,7 @@ from .hand import HandInputs, Template, read_hand_inputs
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
 from .proxies import proxies_for
 from .consensus import consensus_snap, free_peaks, view_peaks
-from .snap import Views, _predict_from_neighbours, dot_graph, progressive_snap, snap, view_weights
+from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
 from .triangulate import triangulate
 from .visibility import Visibility
@@ -128,8 +128,7 @@ class Registrar:
         self.dots = self.tpl.dot_ids
         self.is_dot = self.tpl.is_dot
         self.neighbours = dot_graph(self.tpl.n_vertices, self.tpl.triangles, self.is_dot)
-        self.rings2 = [np.unique(np.concatenate([nb] + [self.neighbours[u] for u in nb])) if len(nb) else nb
-                       for nb in self.neighbours]
+        self.rings2 = two_rings(self.neighbours)
         margins = self.tpl.margin_ids()
         self.extras = np.flatnonzero(~self.is_dot)
         if margins.size:
@@ -289,7 +288,7 @@ class Registrar:
                 rest = self.dots[~is_reg[self.dots]]
                 if rest.size == 0:
                     break
-                start = _predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
+                start = predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
                 Xm = X.copy()
                 Xm[rest] = start
                 vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
@@ -407,7 +406,7 @@ class Registrar:
             e.report["head_pose"] = {
                 "source": f"ear and nose-bridge points, refined with {n_used} rigidly moving fiducials "
                           "(forehead, nose)",
-                "refinement_deg": round(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))), 4)}
+                "refinement_deg": round(ET.rotation_angle_deg(dR), 4)}
             return T
         if len(both) < 3:
             e.flags.append("head pose: no ear / nose-bridge points and fewer than three registered fiducials; "

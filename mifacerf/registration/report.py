@@ -32,6 +32,7 @@ import numpy as np
 from ..capture_folder import Capture
 from ..registered import Registration
 from .dots import DotFilter, peak_near
+from .eyes_teeth import rotation_angle_deg
 from .hand import Template
 from .proxies import cone_weights, proxies_for
 from .visibility import Visibility
@@ -117,7 +118,7 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
         if "part_teeth_upper" in z.files:
             Th = z["part_teeth_upper"]
             dR = r.head_pose[:3, :3].T @ Th[:3, :3]
-            row["head_rotation_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+            row["head_rotation_deg"] = rotation_angle_deg(dR)
             c = T[tpl.dot_ids].mean(0)
             row["head_translation_m"] = float(np.linalg.norm(
                 (r.head_pose[:3, :3] @ c + r.head_pose[:3, 3]) - (Th[:3, :3] @ c + Th[:3, 3])))
@@ -128,8 +129,7 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
             Tl = z["part_teeth_lower"]
             row["lower_teeth_m"] = float(np.linalg.norm(apply(r.teeth[1], p_rest[None])[0]
                                                         - apply(Tl, p_rest[None])[0]))
-            dR = r.teeth[1][:3, :3].T @ Tl[:3, :3]
-            row["lower_teeth_rotation_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+            row["lower_teeth_rotation_deg"] = rotation_angle_deg(r.teeth[1][:3, :3].T @ Tl[:3, :3])
         if "part_eye_left" in z.files and np.isfinite(r.eye_centres).all():
             from ..synthetic import head as H
 

@@ -19,7 +19,7 @@ triangulation's worst reprojection error is below ``max_reproj`` pixels).
 3. threshold = the strongest dot strength of the known points;
 4. for every point bordering ``S``: predicted offset from its neighbours in ``S`` (the paper
    averages their offsets; here a local affine map fitted to the snapped points within two rings,
-   which also carries a rotation or a stretch, :func:`_predict_from_neighbours`); snap from the
+   which also carries a rotation or a stretch, :func:`predict_from_neighbours`); snap from the
    prediction + offset; accept (add to ``S``) if the strength is at least the threshold;
 5. repeat 4 while points are added;
 6. lower the threshold (× ``decay``); while it stays above ``floor`` × the initial threshold
@@ -242,7 +242,12 @@ def _exclusive(acc: np.ndarray, cand_X: np.ndarray, taken: np.ndarray, X: np.nda
     return acc[keep]
 
 
-def _predict_from_neighbours(pred, X, in_S, ids, neighbours, rings2, max_anchors: int = 12) -> np.ndarray:
+def two_rings(neighbours: list[np.ndarray]) -> list[np.ndarray]:
+    """Per vertex, the ids within two steps of the dot graph (``neighbours`` from :func:`dot_graph`)."""
+    return [np.unique(np.concatenate([nb] + [neighbours[u] for u in nb])) if len(nb) else nb for nb in neighbours]
+
+
+def predict_from_neighbours(pred, X, in_S, ids, neighbours, rings2, max_anchors: int = 12) -> np.ndarray:
     """Start positions of points ``ids``: their prediction corrected by the snapped points round them.
 
     The paper averages the neighbours' offsets; here the snapped points within two rings give a
@@ -322,8 +327,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         attempts += int(is_target.sum())
         t0 = float(np.max(np.where(r.ok, r.strength, 0.0), initial=0.0)) or float(len(views.cams))
     t_floor = max(floor * t0, min_strength)
-    rings2 = [np.unique(np.concatenate([neighbours[v]] + [neighbours[u] for u in neighbours[v]]))
-              if len(neighbours[v]) else neighbours[v] for v in range(T)]
+    rings2 = two_rings(neighbours)
     schedule = []
     last_start = np.full((T, 3), np.nan)
     cache_X = np.full((T, 3), np.nan)
@@ -343,7 +347,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
                 border = np.flatnonzero(is_target)
             if border.size == 0:
                 break
-            start = _predict_from_neighbours(pred, X, in_S, border, neighbours, rings2)
+            start = predict_from_neighbours(pred, X, in_S, border, neighbours, rings2)
             redo = ~(np.linalg.norm(start - last_start[border], axis=1) < 0.1 * step)
             if redo.any():
                 rb = border[redo]

@@ -14,7 +14,7 @@ rotation from the target to the reference (lighting and view rotate with it, §6
 ``V_l`` the visibility of light ``l`` from ``p``.
 
 **Beyond the paper — the dominant source's own data.** The model also keeps the parts of every
-captured expression where they are well seen (at least half as many pixels as in the reference,
+captured expression where they are seen (at least a tenth as many pixels as in the reference,
 :func:`part_sources`). A frame whose expression weights near a part (the mouth's or the eye's
 margin vertices) give one such expression at least half the weight renders that part from that
 expression instead of the reference (:func:`frame_reference`): a captured expression, or a blend
