@@ -229,8 +229,8 @@ class RigPreset:
 #: semicircular arm the lights crowd at the poles, and the arm's positions set the spacing
 #: at the equator, where a face's key lights are. Measured (skin of a captured expression,
 #: relit OLAT vs path-traced truth, sky / interior / gradient): 12 x 12 = 144 lights gave
-#: 34.7 / 31.4 / 36.7 dB, 18 x 8 = 144 lights 35.3 / 34.3 / 37.0, 16 x 12 = 192 lights
-#: 36.7 / 35.7 / 38.3, the paper's 16 x 30 = 480 lights 37.9 / 36.5 / 39.7 (README, "Where the error comes from").
+#: 34.8 / 31.4 / 36.6 dB, 18 x 8 = 144 lights 35.4 / 34.3 / 36.8, 16 x 12 = 192 lights
+#: 36.8 / 35.7 / 38.3, the paper's 16 x 30 = 480 lights 38.1 / 36.5 / 39.7 (README, "Where the error comes from").
 PRESETS = {
     "tiny": RigPreset("tiny", n_positions=8, n_strobes=6, n_cameras=3, resolution=128, n_expressions=6, spp=4),
     "draft": RigPreset("draft", n_positions=16, n_strobes=12, n_cameras=6, resolution=256, n_expressions=24, spp=4),
