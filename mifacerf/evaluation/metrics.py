@@ -31,6 +31,25 @@ def psnr(image, reference, mask=None) -> float:
     return float(10 * np.log10(max(peak, 1e-30) ** 2 / mse))
 
 
+def psnr_two_truths(image, truth_a, truth_b, mask=None) -> dict:
+    """PSNR of ``image`` against a Monte Carlo truth rendered as two independent halves.
+
+    The truth is ``t = (a + b) / 2``; its noise variance per value is ``E[(a − b)²] / 4``, so
+    ``MSE(image, t) − mean((a − b)²) / 4`` is an unbiased estimate of the MSE against the
+    truth's expectation (the noise-free image). Returns ``psnr`` (against ``t``),
+    ``noise_floor`` (PSNR of ``t`` itself against its expectation) and ``psnr_noise_corrected``
+    (``inf`` when the estimated error is not above the noise); all share the peak of ``t``.
+    """
+    a, b, mask = _check(truth_a, truth_b, mask)
+    img, _, _ = _check(image, truth_a, mask)
+    t = 0.5 * (a + b)
+    peak2 = max(t[mask].max(), 1e-30) ** 2
+    mse = ((img - t)[mask] ** 2).mean()
+    noise = ((a - b)[mask] ** 2).mean() / 4
+    db = lambda m: float(10 * np.log10(peak2 / m)) if m > 0 else float("inf")  # noqa: E731
+    return {"psnr": db(mse), "noise_floor": db(noise), "psnr_noise_corrected": db(mse - noise)}
+
+
 def relative_error(image, reference, mask=None) -> float:
     """Σ|a − b| / Σ|b| on the mask."""
     a, b, mask = _check(image, reference, mask)
