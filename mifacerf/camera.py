@@ -92,6 +92,8 @@ class Camera:
         import cv2
 
         uv = np.ascontiguousarray(np.asarray(uv, np.float64).reshape(-1, 1, 2))
+        if len(uv) == 0:
+            return np.zeros((0, 2))
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12)
         xn = cv2.undistortPoints(uv, self.K, self.dist, None, None, None, crit)
         return xn.reshape(-1, 2)

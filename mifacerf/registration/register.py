@@ -12,7 +12,8 @@ folder (manifest, images, ``hand/``) and writes a registration folder
 4. **every other expression**, one at a time, the one most similar to those already done
    first: initial estimate by a 3-D morph of the coarse mesh from the most similar
    registered expression (per point, distance-weighted deformation metric), then the
-   progressive snap-to with visibility ray-traced on the current estimate;
+   progressive snap-to with visibility ray-traced on the current estimate, the consensus pass
+   (:mod:`.consensus`) and, for fiducials one view alone shows, the single-view snap (:mod:`.single_view`);
 5. **head pose, teeth, eyes** (:mod:`.eyes_teeth`), **lips and eyelids** relaxed onto the
    rotoscoped curves (:mod:`.contours`);
 6. **dot removal** from every OLAT image (:mod:`.dot_removal`);
@@ -20,7 +21,8 @@ folder (manifest, images, ``hand/``) and writes a registration folder
 8. a per-expression report (registered fraction, threshold schedule, everything that could
    not be registered and why). Already registered expressions are skipped unless ``force``.
 
-Status per vertex: 1 registered (snapped to its dot; or placed from data: a coarse point
+Status per vertex: 1 registered (snapped to its dot — in one view only for the report's
+``single_view_dots``, depth from the estimate; or placed from data: a coarse point
 clicked by the user, a margin fitted to rotoscoped curves, teeth from marks, extra vertices
 placed from registered fiducials); 0 predicted only (flagged; never presented as data).
 """
@@ -42,6 +44,7 @@ from .hand import HandInputs, Template, read_hand_inputs
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
 from .proxies import proxies_for
 from .consensus import consensus_snap, free_peaks, view_peaks
+from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
 from .triangulate import triangulate
@@ -90,6 +93,9 @@ class Options:
     consensus_two_view_strength: float = 0.2  #: ... and both peaks at least this
     consensus_strong: float = 0.5     #: ... or, weaker than this,
     consensus_weak_shift_px: float = 1.5  #: ... it lies this near the start
+    single_view: bool = True          #: then fiducials one view alone shows: position from it, depth from the surface
+    single_view_strength: float = 0.5  #: ... its dot peak at least this strong (as for 2-D dot removal)
+    single_view_search_px: float = 3.0  #: ... this near the point's projection (at most the consensus' spacing cap)
 
 
 @dataclass
@@ -251,6 +257,11 @@ class Registrar:
             snapped[dup] = False
             e.flags.append(f"dots {dup.tolist()} snapped onto a dot already taken: reverted to prediction")
             X[dup] = pred[dup]
+        # like the consensus pass, only where the dots are far enough apart in the images for a lone peak to
+        # be told from its neighbours' (off at the tiny preset, where dots are ~5 px apart)
+        use_single = o.single_view and self.spacing / self.fp >= o.consensus_min_spacing_px
+        single = self.single_view_pass(views, pred, X, snapped, known) if use_single else np.zeros(0, int)
+        e.report["single_view_dots"] = single.tolist()
         e.report.update({
             "threshold_schedule": [round(float(t), 4) for t in r.schedule],
             "accepted_per_level": [int(a) for a in r.accepted_per_level],
@@ -315,6 +326,36 @@ class Registrar:
                                  "registered_per_step": per_step,
                                  "registered": np.flatnonzero(rescued).tolist(), "left": rejected}
         return rescued
+
+    def single_view_pass(self, views: Views, pred: np.ndarray, X: np.ndarray, snapped: np.ndarray,
+                         known: dict) -> np.ndarray:
+        """:func:`.single_view.single_view_snap` for the fiducials still unregistered that show as a dot in exactly
+        one of the views that see them (visibility of the estimate: prediction corrected by registered
+        neighbours). Updates ``X`` and ``snapped`` in place; returns the ids it registered."""
+        o = self.opt
+        kid = np.array(sorted(known), np.int64)
+        is_reg = snapped.copy()
+        is_reg[kid[self.is_dot[kid]]] = True
+        rest = self.dots[~is_reg[self.dots]]
+        if rest.size == 0:
+            return rest
+        in_S = is_reg.copy()
+        in_S[kid] = True
+        start = predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
+        Xm = X.copy()
+        Xm[rest] = start
+        vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
+        cos = np.nan_to_num(cos, nan=1.0)
+        reg_ids = self.dots[is_reg[self.dots]]
+        peaks = [view_peaks(m, o.single_view_strength, views.centroid_sigma) for m in views.maps]
+        free = free_peaks(peaks, self.cams, X[reg_ids], (vis & (cos > -0.3))[:, reg_ids], o.consensus_taken_px)
+        search = min(o.single_view_search_px, o.consensus_max_spacing * self.spacing / self.fp)
+        r = single_view_snap(self.cams, peaks, free, start, (vis & (cos > o.min_cos))[:, rest], search,
+                             o.single_view_strength)
+        ids = rest[r.points]
+        X[ids] = r.X
+        snapped[ids] = True
+        return ids
 
     def _duplicates(self, X, snapped, pred) -> np.ndarray:
         from scipy.spatial import cKDTree
@@ -512,7 +553,8 @@ class Registrar:
         not_reg = self.dots[status[self.dots] != 1]
         if not_reg.size:
             e.flags.append(f"{len(not_reg)} fiducial(s) could not be registered (no dot found above the "
-                           f"strength floor in ≥ 2 views): kept at the morph prediction with status 0")
+                           f"strength floor in ≥ 2 views, nor in exactly one): kept at the "
+                           f"morph prediction with status 0")
         # extras relative to the registered dots (per reference expression)
         V = X.copy()
         ex = self.extras
@@ -543,6 +585,7 @@ class Registrar:
         e.report.update({
             "n_dots": int(nd),
             "dots_registered": int((status[self.dots] == 1).sum()),
+            "dots_single_view": len(e.report.get("single_view_dots", [])),
             "registered_fraction": round(float((status[self.dots] == 1).mean()) if nd else 1.0, 4),
             "dots_not_registered": not_reg.tolist(),
             "vertices_predicted_only": int((status == 0).sum()),

@@ -9,7 +9,8 @@
   cameras that see it); ``misregistered_fraction``: registered dots more than 3 px from the truth;
   ``registered_of_imaged``: of the dots that actually *show* in at least two views (seen as above
   and with a dot strength ≥ 0.25 within a pixel of the true projection — hair, ears and lids hide
-  some dots the template mesh does not know of);
+  some dots the template mesh does not know of); ``single_view_dots`` and their median error
+  (px): those registered from one view, their depth from the estimate;
 * **residual dot visibility** — the mean dot-filter response (dot-strength units: 1 = a
   typical dot) at the true dot positions visible in each view, in the diffuse proxy of the
   captured images (*before*) and of the dot-free images (*after*, the registration's patches
@@ -98,6 +99,9 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
                "unregistered_median_px": _stats((err / fp)[dots][~ok])[0],
                "seen_by_2plus_views": float((tvis[:, dots].sum(0) >= 2).mean()),
                "misregistered_fraction": float((e_px > 3.0).mean()) if e_px.size else 0.0}
+        sv = np.asarray(reg.report(name).get("single_view_dots", []), np.int64)
+        row["single_view_dots"] = int(len(sv))   # registered from one view (depth from the estimate)
+        row["single_view_median_px"] = _stats((err / fp)[sv])[0] if len(sv) else None
         seen = tvis[:, dots].sum(0) >= 2
         row["registered_of_seen"] = float((ok & seen).sum() / max(seen.sum(), 1))
         if filt is not None:
