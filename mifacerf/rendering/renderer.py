@@ -262,6 +262,8 @@ class Renderer:
             self._scene.set_vertices(plan.target)
             scene = self._scene
         hits, uv = scene.render_hits(camera, spp, seed)
+        if use_parts:
+            self._parts_inside_skin(hits, uv, camera, plan.target)
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
         on_skin = hits.tri[idx] < n_skin_tri
@@ -334,6 +336,27 @@ class Renderer:
         if key is not None:
             self._last = (key, out.copy())
         return out
+
+
+    def _parts_inside_skin(self, hits, uv: np.ndarray, camera: Camera, target: np.ndarray) -> None:
+        """Eyes, teeth and the mouth's backdrop belong inside the skin: a camera sample that meets a part first
+        and then, right behind it, the *front* of the skin (the part pokes out through the cheek or a lid —
+        the target's part transforms are estimates) shows that skin instead. Through the mouth or lid
+        opening the skin behind a part is seen from inside (back-facing) and the part stays. Updates the
+        combined scene's ``hits`` (H*W*spp samples) in place."""
+        n_skin_tri = len(self.model.triangles)
+        part = np.flatnonzero(hits.valid & (hits.tri >= n_skin_tri))
+        if part.size == 0:
+            return
+        self._scene.set_vertices(target)
+        o, d = camera.pixel_rays(uv[part])
+        start = hits.t[part] + 1e-5
+        behind = self._scene.trace(o + start[:, None] * d, d, cull_back=False)
+        ok = behind.valid
+        front = np.zeros(len(part), bool)
+        front[ok] = np.einsum("nd,nd->n", self._scene.face_normals()[behind.tri[ok]], d[ok]) < 0
+        sel = part[front]
+        hits.tri[sel], hits.bary[sel], hits.t[sel] = behind.tri[front], behind.bary[front], start[front] + behind.t[front]
 
 
 def _frame_key(target, weights, camera, env, spp, seed, parts) -> str:
