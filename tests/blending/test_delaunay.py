@@ -1,13 +1,29 @@
 """m-D triangulation, barycentrics and the out-of-hull rule, with their degenerate cases."""
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 from scipy.spatial import Delaunay
 
 from mifacerf.blending import delaunay as D
 from mifacerf.blending.delaunay import triangulate, weights_numpy
 
 SET = settings(max_examples=40, deadline=None)
+
+
+def ghost_thickness(tri) -> float:
+    """The largest altitude (a vertex's distance from the plane of the opposite face) of the triangulation's
+    ghost (sliver) simplices: how far the convex hull can stand out of the non-ghost boundary; 0 without ghosts."""
+    out = 0.0
+    for simplex in tri.simplices[tri.ghost]:
+        V = tri.points[simplex]
+        alt = []
+        for i in range(len(V)):
+            rest = np.delete(V, i, axis=0)
+            A = (rest[1:] - rest[0]).T
+            c = np.linalg.lstsq(A, V[i] - rest[0], rcond=None)[0] if A.size else np.zeros(0)
+            alt.append(np.linalg.norm(V[i] - rest[0] - (A @ c if A.size else 0)))
+        out = max(out, max(alt))
+    return out
 
 
 def reconstruct(tri, ids, w):
@@ -156,6 +172,7 @@ def make_points(seed, m, n, kind):
 
 @SET
 @given(points_strategy)
+@example((1731, 3, 23, "gauss"))   # a ghost sliver: the projection is onto a boundary slightly inside the hull
 def test_weights_properties(args):
     seed, m, n, kind = args
     P, rng = make_points(seed, m, n, kind)
@@ -169,11 +186,13 @@ def test_weights_properties(args):
         return
     Y = reconstruct(tri, ids, w)
     # inside: the weights reproduce the point; outside: Y is the projection onto the hull
-    # (x - y) . (p - y) <= 0 for every point p of the hull
+    # (x - y) . (p - y) <= 0 for every point p of the hull — onto the boundary of the non-ghost simplices,
+    # which differs from the convex hull by at most the ghost slivers' thickness (module docstring, 4b)
     Pm = tri.points
     g = np.einsum("qm,pqm->pq", X - Y, Pm[:, None, :] - Y[None])
     scale = 1 + np.abs(X).max()
-    assert np.all(g <= 1e-7 * scale ** 2)
+    slack = np.linalg.norm(X - Y, axis=1) * ghost_thickness(tri)
+    assert np.all(g <= 1e-7 * scale ** 2 + slack[None])
     # every source reproduces itself (up to merged duplicates)
     ids, w = weights_numpy(tri, tri.points)
     assert np.allclose(w.max(1), 1, atol=1e-9)
