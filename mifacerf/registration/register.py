@@ -299,14 +299,7 @@ class Registrar:
                 rest = self.dots[~is_reg[self.dots]]
                 if rest.size == 0:
                     break
-                start = predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
-                Xm = X.copy()
-                Xm[rest] = start
-                vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
-                cos = np.nan_to_num(cos, nan=1.0)
-                reg_ids = self.dots[is_reg[self.dots]]
-                free = free_peaks(peaks, self.cams, X[reg_ids], (vis & (cos > -0.3))[:, reg_ids],
-                                  o.consensus_taken_px)
+                start, vis, cos, reg_ids, free = self._starts_and_free_peaks(pred, X, in_S, is_reg, rest, peaks)
                 res = consensus_snap(self.cams, peaks, free, start, (vis & (cos > o.consensus_min_cos))[:, rest],
                                      X[reg_ids], max_shift=shift_px * self.fp,
                                      weak_shift=o.consensus_weak_shift_px * self.fp,
@@ -327,6 +320,19 @@ class Registrar:
                                  "registered": np.flatnonzero(rescued).tolist(), "left": rejected}
         return rescued
 
+    def _starts_and_free_peaks(self, pred, X, in_S, is_reg, rest, peaks) -> tuple:
+        """For the unregistered fiducials ``rest``: their starts (prediction corrected by the neighbours in
+        ``in_S``), visibility and view cosines (C, T) of the mesh with them there, the registered fiducials'
+        ids, and per view the dot peaks those do not already take (:func:`.consensus.free_peaks`)."""
+        start = predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
+        Xm = X.copy()
+        Xm[rest] = start
+        vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
+        cos = np.nan_to_num(cos, nan=1.0)
+        reg_ids = self.dots[is_reg[self.dots]]
+        free = free_peaks(peaks, self.cams, X[reg_ids], (vis & (cos > -0.3))[:, reg_ids], self.opt.consensus_taken_px)
+        return start, vis, cos, reg_ids, free
+
     def single_view_pass(self, views: Views, pred: np.ndarray, X: np.ndarray, snapped: np.ndarray,
                          known: dict) -> np.ndarray:
         """:func:`.single_view.single_view_snap` for the fiducials still unregistered that show as a dot in exactly
@@ -341,14 +347,8 @@ class Registrar:
             return rest
         in_S = is_reg.copy()
         in_S[kid] = True
-        start = predict_from_neighbours(pred, X, in_S, rest, self.neighbours, self.rings2)
-        Xm = X.copy()
-        Xm[rest] = start
-        vis, cos = self.vis(Xm, self.cams, min_cos=None, return_cos=True)
-        cos = np.nan_to_num(cos, nan=1.0)
-        reg_ids = self.dots[is_reg[self.dots]]
         peaks = [view_peaks(m, o.single_view_strength, views.centroid_sigma) for m in views.maps]
-        free = free_peaks(peaks, self.cams, X[reg_ids], (vis & (cos > -0.3))[:, reg_ids], o.consensus_taken_px)
+        start, vis, cos, _, free = self._starts_and_free_peaks(pred, X, in_S, is_reg, rest, peaks)
         search = min(o.single_view_search_px, o.consensus_max_spacing * self.spacing / self.fp)
         r = single_view_snap(self.cams, peaks, free, start, (vis & (cos > o.min_cos))[:, rest], search,
                              o.single_view_strength)

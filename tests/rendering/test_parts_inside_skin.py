@@ -11,6 +11,20 @@ from mifacerf.rendering.renderer import Renderer
 from mifacerf.rig import camera_ring
 
 
+def ball(radius, centre):
+    b = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    b.apply_translation(centre)
+    return b
+
+
+def part_samples(skin, part, camera):
+    """``scene_hits`` and the samples that meet the part first (more than 20 of them)."""
+    hits, uv, fake = scene_hits(skin, part, camera)
+    on_part = hits.valid & (hits.tri >= len(skin.faces))
+    assert on_part.sum() > 20
+    return hits, uv, fake, on_part
+
+
 def scene_hits(skin, part, camera):
     """Hits of the camera's pixel centres on skin + part (part triangles after the skin's), back faces culled
     as the renderer does, and a stand-in renderer holding the skin alone."""
@@ -27,14 +41,9 @@ def test_a_part_poking_out_shows_the_skin_and_one_behind_an_opening_stays(mi):
     towards = cam.centre / np.linalg.norm(cam.centre)
     skin = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     # a ball centred on the skin's front: its front half pokes out of the head
-    poke = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
-    poke.apply_translation(0.1 * towards)
-    hits, uv, fake = scene_hits(skin, poke, cam)
-    n_skin = len(skin.faces)
-    on_part = hits.valid & (hits.tri >= n_skin)
-    assert on_part.sum() > 20
+    hits, uv, fake, on_part = part_samples(skin, ball(0.03, 0.1 * towards), cam)
     Renderer._parts_inside_skin(fake, hits, uv, cam, np.asarray(skin.vertices))
-    assert not (hits.valid & (hits.tri >= n_skin)).any()        # all replaced by the skin behind
+    assert not (hits.valid & (hits.tri >= len(skin.faces))).any()   # all replaced by the skin behind
     assert hits.valid[on_part].all() and np.isfinite(hits.t[on_part]).all()
     # the replacement is the skin's own first hit from the camera
     direct, _ = MeshScene(skin.vertices, skin.faces).render_hits(cam, 1)
@@ -44,12 +53,7 @@ def test_a_part_poking_out_shows_the_skin_and_one_behind_an_opening_stays(mi):
     # the skin with a hole in front (a mouth): a ball inside, seen through it, stays
     centres = skin.triangles_center @ towards
     open_skin = trimesh.Trimesh(skin.vertices, skin.faces[centres < 0.07], process=False)
-    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.03)
-    inner.apply_translation(0.05 * towards)
-    hits, uv, fake = scene_hits(open_skin, inner, cam)
-    n_skin = len(open_skin.faces)
-    seen = hits.valid & (hits.tri >= n_skin)
-    assert seen.sum() > 20
+    hits, uv, fake, _ = part_samples(open_skin, ball(0.03, 0.05 * towards), cam)
     before = hits.tri.copy()
     Renderer._parts_inside_skin(fake, hits, uv, cam, np.asarray(open_skin.vertices))
     np.testing.assert_array_equal(hits.tri, before)
