@@ -26,19 +26,21 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
     for s in range(S):
         R = plan.rotations.get(s, np.broadcast_to(np.eye(3), (T, 3, 3)))
         lighting[s] = basis.rotated(R)
-    # per-vertex chunk weights for every (s, c), zero where the plan has no chunk
+    # per-vertex chunk weights for every (s, c) in both tiers, zero where the plan has no chunk
     a = np.zeros((S, C, T))
+    fb = np.zeros((S, C, T))
     for ch in plan.chunks:
         a[ch.s, ch.c] = ch.weights
+        fb[ch.s, ch.c] = ch.fallback
     renderer._scene.set_vertices(plan.target)
     hits, _ = renderer._scene.render_hits(camera, spp, seed)
     idx = np.flatnonzero(hits.valid)
     tri, bary = hits.tri[idx], hits.bary[idx]
     tv = model.triangles[tri]
-    acc = np.zeros((len(idx), 3))
-    wsum = np.zeros(len(idx))
-    acc_any = np.zeros((len(idx), 3))  # the same without the depth test: the documented fall-back
-    wsum_any = np.zeros(len(idx))
+    # accumulated colour and weight: primary tier seen, fallback tier seen, fallback without the
+    # depth test (the documented last resort)
+    acc = {k: np.zeros((len(idx), 3)) for k in ("primary", "fallback", "any")}
+    wsum = {k: np.zeros(len(idx)) for k in acc}
     tol = renderer.depth_tolerance
     for s in range(S):
         for c in range(C):
@@ -55,9 +57,10 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             p_s = np.einsum("nk,nkd->nd", bary, model.vertices[s][tv])
             uv, _ = cam.project(p_s)
             dist = np.linalg.norm(p_s - cam.centre, axis=1)
-            aw = (bary * a[s, c][tv])  # (N, 3) per-vertex chunk weight times barycentric
-            a_p = aw.sum(1)
-            lam = np.einsum("nk,nklc->nlc", aw / np.maximum(a_p, 1e-300)[:, None], lighting[s][tv])
+            a_p = (bary * a[s, c][tv]).sum(1)  # the chunk's weight at the sample, primary tier
+            f_p = (bary * fb[s, c][tv]).sum(1)  # and fallback tier
+            aw = bary * (a[s, c] + fb[s, c])[tv]  # lighting interpolated over either tier's vertices
+            lam = np.einsum("nk,nklc->nlc", aw / np.maximum(aw.sum(1), 1e-300)[:, None], lighting[s][tv])
             x0 = np.floor(uv[:, 0]).astype(np.int64)
             y0 = np.floor(uv[:, 1]).astype(np.int64)
             fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
@@ -66,7 +69,7 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             for dy in (0, 1):
                 for dx in (0, 1):
                     xx, yy = x0 + dx, y0 + dy
-                    ok = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h) & np.isfinite(uv).all(1) & (a_p > 0)
+                    ok = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h) & np.isfinite(uv).all(1) & (a_p + f_p > 0)
                     xs, ys = np.where(ok, xx, 0), np.where(ok, yy, 0)
                     ok &= have[ys, xs]
                     wt_any = np.where(ok, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
@@ -76,16 +79,16 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
                     cov += wt
                     col_any += wt_any[:, None] * lit
                     cov_any += wt_any
-            seen = cov > 1e-3
-            acc[seen] += a_p[seen, None] * col[seen] / cov[seen, None]
-            wsum[seen] += a_p[seen]
-            seen = cov_any > 1e-3
-            acc_any[seen] += a_p[seen, None] * col_any[seen] / cov_any[seen, None]
-            wsum_any[seen] += a_p[seen]
-    fallback = (wsum <= 1e-9) & (wsum_any > 1e-9)
-    acc[fallback], wsum[fallback] = acc_any[fallback], wsum_any[fallback]
-    covered = wsum > 1e-9
-    colour = np.where(covered[:, None], acc / np.maximum(wsum, 1e-300)[:, None], 0.0)
+            for tier, weight, cl, cv in (("primary", a_p, col, cov), ("fallback", f_p, col, cov),
+                                         ("any", f_p, col_any, cov_any)):
+                seen = cv > 1e-3
+                acc[tier][seen] += weight[seen, None] * cl[seen] / cv[seen, None]
+                wsum[tier][seen] += weight[seen]
+    tier = np.where(wsum["primary"] > 1e-9, 0, np.where(wsum["fallback"] > 1e-9, 1, 2))
+    acc_p = np.choose(tier[:, None], [acc["primary"], acc["fallback"], acc["any"]])
+    wsum_p = np.choose(tier, [wsum["primary"], wsum["fallback"], wsum["any"]])
+    covered = wsum_p > 1e-9
+    colour = np.where(covered[:, None], acc_p / np.maximum(wsum_p, 1e-300)[:, None], 0.0)
     h, w = camera.height, camera.width
     rgba = np.zeros((h * w, 4))
     pix = idx // spp

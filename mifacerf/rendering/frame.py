@@ -14,10 +14,12 @@ geometry), projected into camera ``c`` with its lens distortion; the lit image i
 read there bilinearly (colour / coverage) from those of the 2x2 texels whose seen
 surface lies within ``depth_tolerance`` of ``p_s``'s distance (occlusion-aware
 filtering: a texel showing an occluder, or a surface behind a silhouette, is not
-used); the chunk's weight is ``a = Σ_k b_k a_{tri_k}``. Result:
-Σ a·colour / Σ a over the chunks that see the point; where none does, over the
-chunks regardless of the depth test (documented fall-back); where no chunk covers
-the point at all, ``covered`` is False.
+used); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's two tiers
+(:mod:`.chunks`: primary, fallback). Result: Σ a·colour / Σ a over the chunks that see
+the point, with the primary weights; where no primary chunk sees it, with the fallback
+weights; where no chunk sees it, over the chunks regardless of the depth test with the
+fallback weights (documented fall-back); where no chunk covers the point at all,
+``covered`` is False.
 """
 from __future__ import annotations
 
@@ -31,7 +33,8 @@ class LitFrame:
     """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.
 
     ``target`` (T, 3) and ``triangles`` (F, 3): the target mesh; ``chunks``: list of
-    dicts with keys ``s``, ``c``, ``weights`` (T,), ``image`` (H, W, 4) lit RGB + coverage,
+    dicts with keys ``s``, ``c``, ``weights`` (T,) and ``fallback`` (T,) (the two tiers'
+    per-vertex weights; ``fallback`` defaults to ``weights``), ``image`` (H, W, 4) lit RGB + coverage,
     ``depth`` (H, W), ``camera`` (a :class:`~mifacerf.camera.Camera`); ``sources`` {s: (T, 3)}.
     """
 
@@ -50,13 +53,14 @@ class LitFrame:
         src_offset = {s: i * len(target) * 3 for i, s in enumerate(src_ids)}
         self.sources = to_jit(mi.Float, np.concatenate([np.asarray(sources[s], np.float64).reshape(-1)
                                                         for s in src_ids]) if src_ids else np.zeros(3))
-        img_parts, depth_parts, w_parts, table = [], [], [], []
+        img_parts, depth_parts, w_parts, f_parts, table = [], [], [], [], []
         img_off = 0
         for i, ch in enumerate(chunks):
             h, w = ch["image"].shape[:2]
             img_parts.append(np.asarray(ch["image"], np.float32).reshape(-1))
             depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
             w_parts.append(np.asarray(ch["weights"], np.float32))
+            f_parts.append(np.asarray(ch.get("fallback", ch["weights"]), np.float32))
             row = np.zeros(CAM_PARAMS + 3)
             row[:CAM_PARAMS] = camera_params(ch["camera"])
             row[CAM_PARAMS] = img_off  # offset of the chunk's pixels (in pixels)
@@ -71,6 +75,7 @@ class LitFrame:
         self.images = to_jit(mi.Float, np.concatenate(img_parts) if img_parts else np.zeros(4))
         self.depths = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
         self.weights = to_jit(mi.Float, np.concatenate(w_parts) if w_parts else np.zeros(1))
+        self.fallback = to_jit(mi.Float, np.concatenate(f_parts) if f_parts else np.zeros(1))
 
     # ------------------------------------------------------------------ kernel
     def barycentric(self, tri, p):
@@ -99,7 +104,7 @@ class LitFrame:
         def cond(i, *_):
             return i < n_chunks
 
-        def body(i, r, g, bl, wsum, r2, g2, b2, wsum2):
+        def body(i, *acc):
             base = i * stride
 
             def P(k):
@@ -109,15 +114,17 @@ class LitFrame:
             woff = UInt32(P(CAM_PARAMS + 2))
             ioff = UInt32(P(CAM_PARAMS))
             a = Float(0)
+            af = Float(0)
             p = [Float(0), Float(0), Float(0)]
             for k in range(3):
                 a += b[k] * dr.gather(Float, self.weights, woff + vid[k], active)
+                af += b[k] * dr.gather(Float, self.fallback, woff + vid[k], active)
                 for d in range(3):
                     p[d] += b[k] * dr.gather(Float, self.sources, src + vid[k] * 3 + d, active)
             u, v, dist, zc, wi, hi = project(P, p)
-            use = active & (a > 0) & (zc > 0)
+            use = active & ((a > 0) | (af > 0)) & (zc > 0)
             # bilinear over the 2x2 texels, each tap used only if the surface camera c saw there lies
-            # at the point's distance (occlusion-aware filtering); the fall-back ignores depth
+            # at the point's distance (occlusion-aware filtering); the last resort ignores depth
             col_d = [Float(0), Float(0), Float(0)]
             cov_d = Float(0)
             col = [Float(0), Float(0), Float(0)]
@@ -134,21 +141,20 @@ class LitFrame:
                 cov_d += wdep * tap[3]
             ok = use & (cov > 1e-3)
             seen = use & (cov_d > 1e-3)
-            inv_cov = dr.select(ok, dr.rcp(cov), 0.0)
-            inv_cov_d = dr.select(seen, dr.rcp(cov_d), 0.0)
-            wa = dr.select(ok, a, 0.0)
-            ws = dr.select(seen, a, 0.0)
-            return (i + 1,
-                    r + ws * col_d[0] * inv_cov_d, g + ws * col_d[1] * inv_cov_d, bl + ws * col_d[2] * inv_cov_d,
-                    wsum + ws,
-                    r2 + wa * col[0] * inv_cov, g2 + wa * col[1] * inv_cov, b2 + wa * col[2] * inv_cov, wsum2 + wa)
+            seen_col = [col_d[ch] * dr.select(seen, dr.rcp(cov_d), 0.0) for ch in range(3)]
+            any_col = [col[ch] * dr.select(ok, dr.rcp(cov), 0.0) for ch in range(3)]
+            out = []
+            # accumulators: (primary, seen), (fallback, seen), (fallback, regardless of depth)
+            for k, (wt, c3) in enumerate(((dr.select(seen, a, 0.0), seen_col), (dr.select(seen, af, 0.0), seen_col),
+                                          (dr.select(ok, af, 0.0), any_col))):
+                out += [acc[4 * k + ch] + wt * c3[ch] for ch in range(3)] + [acc[4 * k + 3] + wt]
+            return (i + 1, *out)
 
-        zeros = [dr.opaque(Float, 0, n) for _ in range(8)]
+        zeros = [dr.opaque(Float, 0, n) for _ in range(12)]
         state = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)
-        _, r, g, bl, wsum, r2, g2, b2, wsum2 = state
-        use_depth = wsum > 1e-9
-        wfinal = dr.select(use_depth, wsum, wsum2)
-        inv = dr.select(wfinal > 1e-9, dr.rcp(wfinal), 0.0)
-        colour = mi.Color3f(dr.select(use_depth, r, r2) * inv, dr.select(use_depth, g, g2) * inv,
-                            dr.select(use_depth, bl, b2) * inv)
-        return colour, active & (wfinal > 1e-9), active & ~use_depth & (wsum2 > 1e-9)
+        acc = state[1:]
+        primary, fallback, anyway = acc[3] > 1e-9, acc[7] > 1e-9, acc[11] > 1e-9
+        pick = [dr.select(primary, acc[j], dr.select(fallback, acc[4 + j], acc[8 + j])) for j in range(4)]
+        inv = dr.select(pick[3] > 1e-9, dr.rcp(pick[3]), 0.0)
+        colour = mi.Color3f(pick[0] * inv, pick[1] * inv, pick[2] * inv)
+        return colour, active & (pick[3] > 1e-9), active & ~primary & ~fallback & anyway

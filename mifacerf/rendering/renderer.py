@@ -141,7 +141,7 @@ class Renderer:
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
             fv = model.triangles[f.tri]
-            wt = f.bary * chunk.weights[fv]
+            wt = f.bary * (chunk.weights + chunk.fallback)[fv]  # lit wherever either tier may read it
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
             coef = wt[active] / wsum_t[active, None]
@@ -159,8 +159,8 @@ class Renderer:
             px = f.pixels[active]
             img[px[:, 0], px[:, 1], :3] = lit
             img[px[:, 0], px[:, 1], 3] = 1.0
-            chunks.append({"s": s, "c": c, "weights": chunk.weights, "image": img, "depth": f.depth_map(),
-                           "camera": cam})
+            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback, "image": img,
+                           "depth": f.depth_map(), "camera": cam})
             stats.chunks += 1
             stats.texels += len(active)
             stats.add_time("relight", time.perf_counter() - t0)

@@ -9,18 +9,7 @@ from mifacerf.rendering.lighting import RotatedLightBasis
 from mifacerf.rendering.model import ModelError, ModelWriter
 from mifacerf.rig import LightStage
 
-from .toy import make_toy
 
-
-@pytest.fixture(scope="module")
-def toy_model(tmp_path_factory, mi):
-    from mifacerf.rendering.build import build_model
-    from mifacerf.rendering.model import Model
-
-    root = tmp_path_factory.mktemp("stress")
-    cap, _ = make_toy(root, names=("neutral", "stretch"), size=32, n_pos=6, n_str=5)
-    build_model(cap, root / "model")
-    return Model(root / "model")
 
 
 def sun_and_sky(ratio: float, h: int = 32) -> E.Environment:
