@@ -12,11 +12,13 @@ import click
               "the neutral is always registered first).")
 @click.option("--force", is_flag=True, help="Register again expressions already registered.")
 @click.option("--no-dot-removal", is_flag=True, help="Skip removing the dots from the OLAT images.")
+@click.option("--dot-fill", type=click.Choice(["texture", "harmonic"]), default="texture", show_default=True,
+              help="How dots are filled: texture-aware with each light's share kept, or harmonic (smooth).")
 @click.option("--radius-px", type=float, default=None, help="3-D search radius of the snap, in pixel footprints.")
 @click.option("--floor", type=float, default=None,
               help="Lowest dot-strength threshold, as a fraction of the initial one.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def register_cmd(capture, out, expressions, force, no_dot_removal, radius_px, floor, quiet):
+def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, radius_px, floor, quiet):
     """Register every expression of CAPTURE into the template (reads only CAPTURE: manifest, images, hand/).
 
     Writes per expression the registered mesh, texture coordinates, visibility, head pose, teeth and
@@ -29,7 +31,7 @@ def register_cmd(capture, out, expressions, force, no_dot_removal, radius_px, fl
     from ..capture_folder import CaptureError
     from .register import Options, RegistrationInputError, register_capture
 
-    opt = Options(remove_dots=not no_dot_removal)
+    opt = Options(remove_dots=not no_dot_removal, dot_fill=dot_fill)
     if radius_px is not None:
         opt.radius_px = radius_px
     if floor is not None:

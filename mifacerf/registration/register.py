@@ -38,7 +38,7 @@ from ..capture_folder import Capture
 from ..registered import RegisteredExpression, RegistrationWriter
 from . import eyes_teeth as ET
 from .contours import curve_residuals, propagate, relax_margin, rings
-from .dot_removal import Inpainter, dot_mask
+from .dot_removal import Inpainter, dot_mask, shading_ratio_fill
 from .dots import DotFilter, face_mask, peak_near
 from .hand import HandInputs, Template, read_hand_inputs
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
@@ -77,6 +77,7 @@ class Options:
     cone_deg: float = 60.0          #: cone omitted from the diffuse proxy
     removal_margin_px: float = 1.0  #: dot removal radius beyond the dot's image radius
     remove_dots: bool = True
+    dot_fill: str = "texture"       #: "texture" (.dot_removal.shading_ratio_fill) or "harmonic" (Inpainter)
     remove_unregistered: bool = True  #: also paint out dots detected in 2-D but not registered
     unregistered_strength: float = 0.5  #: ... when their dot strength in the view reaches this
     movable_rings: int = 2          #: non-fiducial vertices this close to a margin follow it
@@ -668,10 +669,11 @@ class Registrar:
                     extra += len(pk)
             inp = Inpainter(mask, valid)
             field_ = e.fields[cam.name]
-            values = inp.fill(field_) if len(inp) else np.zeros((len(field_), 0, 3), np.float32)
+            values = self._dot_fill(inp, field_, valid)
             self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
             npix += len(inp)
-            d1 = inp.apply(d0)
+            d1 = np.array(d0, copy=True)     # the proxy through the same fill: the residual dot response
+            d1[inp.pixels[:, 0], inp.pixels[:, 1]] = self._dot_fill(inp, np.asarray(d0)[None], valid)[0]
             r0 = np.maximum(self.filter.response(d0), 0) / s
             r1 = np.maximum(self.filter.response(d1), 0) / s
             if len(uv):
@@ -682,6 +684,14 @@ class Registrar:
         if extra:
             e.report["unregistered_dots_removed_2d"] = int(extra)
         return {"pixels": int(npix), "response_before": round(b, 4), "response_after": round(a, 4)}
+
+    def _dot_fill(self, inp: Inpainter, images: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        """Values (L, P, 3) filling ``inp``'s pixels of ``images`` (L, H, W, 3) by ``Options.dot_fill``."""
+        if self.opt.dot_fill == "texture":
+            return shading_ratio_fill(inp, images, valid)
+        if self.opt.dot_fill == "harmonic":
+            return inp.fill(images) if len(inp) else np.zeros((len(images), 0, 3), np.float32)
+        raise ValueError(f"unknown dot fill {self.opt.dot_fill!r} (expected 'texture' or 'harmonic')")
 
     # ------------------------------------------------------------------ eyes (after all expressions)
     def finish_eyes(self) -> dict:

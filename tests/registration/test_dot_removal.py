@@ -40,3 +40,75 @@ def test_background_is_never_blended_in():
     out = inp.apply(img)
     assert np.all(out[valid] == 0.5) and np.all(out[~valid] == 0)
     assert valid[inp.pixels[:, 0], inp.pixels[:, 1]].all()
+
+
+def _lit_field(albedo, shading):
+    """(L, H, W, 3) images = shading (L, H, W) × albedo (H, W, 3): a Lambertian field."""
+    return (shading[..., None] * albedo[None]).astype(np.float32)
+
+
+def test_texture_fill_keeps_each_lights_shadow_edge_through_a_dot():
+    """A light stage's field: 24 soft lights and one whose shadow edge crosses a dot. The ink changes
+    the colour only, so the lights' shares at the dot are the skin's and the fill recovers the
+    dotless skin under the shadowing light too; the harmonic fill blurs its edge away."""
+    from mifacerf.registration.dot_removal import shading_ratio_fill
+
+    h, w = 40, 40
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    skin = np.broadcast_to(np.array([0.6, 0.45, 0.4]), (h, w, 3)).copy()
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    soft = [0.5 + 0.004 * (np.cos(a) * xx + np.sin(a) * yy) for a in angles]
+    edge = np.where(xx < 20.3, 1.0, 0.1)
+    shading = np.stack(soft + [edge])                                         # (25, H, W)
+    truth = _lit_field(skin, shading)
+    m = dot_mask((h, w), np.array([[20.0, 20.0], [8.0, 30.0]]), 3.0)
+    dotted = skin.copy()
+    dotted[m] = [0.9, 0.85, 0.05]                                              # yellow ink
+    field = _lit_field(dotted, shading)
+    inp = Inpainter(m)
+    ref = truth[-1, inp.pixels[:, 0], inp.pixels[:, 1]]                        # the shadowing light
+    err_t = np.abs(shading_ratio_fill(inp, field)[-1] - ref).max() / ref.max()
+    err_h = np.abs(inp.fill(field)[-1] - ref).max() / ref.max()
+    assert err_t < 0.05, err_t
+    assert err_h > 5 * err_t, (err_h, err_t)
+
+
+def test_texture_fill_continues_a_skin_texture_better_than_harmonic():
+    from mifacerf.registration.dot_removal import shading_ratio_fill
+
+    h, w = 64, 64
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    pattern = 0.5 + 0.25 * np.sin(2 * np.pi * (xx / 5.0 + yy / 9.0))             # fine, oriented texture
+    skin = pattern[..., None] * np.array([0.9, 0.7, 0.6])
+    shading = np.stack([0.8 + 0.002 * xx, 0.3 + 0.004 * yy])
+    truth = _lit_field(skin, shading)
+    centres = np.array([[16.0, 16.0], [40.0, 22.0], [28.0, 45.0], [48.0, 48.0]])
+    m = dot_mask((h, w), centres, 2.5)
+    dotted = skin.copy()
+    dotted[m] = [0.9, 0.85, 0.05]
+    inp = Inpainter(m)
+    ref = truth[:, inp.pixels[:, 0], inp.pixels[:, 1]]
+    field = _lit_field(dotted, shading)
+    rms_t = np.sqrt(((shading_ratio_fill(inp, field) - ref) ** 2).mean())
+    rms_h = np.sqrt(((inp.fill(field) - ref) ** 2).mean())
+    assert rms_t < 0.6 * rms_h, (rms_t, rms_h)
+
+
+def test_texture_fill_keeps_the_background_out_and_falls_back_without_signal():
+    from mifacerf.registration.dot_removal import shading_ratio_fill
+
+    h, w = 30, 30
+    img = np.zeros((2, h, w, 3), np.float32)
+    img[:, :, :15] = [[[0.5, 0.4, 0.3]]], [[[0.25, 0.2, 0.15]]]       # face on the left, two lights
+    valid = img[0, ..., 0] > 0
+    m = dot_mask((h, w), np.array([[13.5, 15.0]]), 3.0)              # a dot on the silhouette
+    img[0, m & valid] = [1.0, 1.0, 0.0]                                # the ink, lit like the skin
+    img[1, m & valid] = [0.5, 0.5, 0.0]
+    inp = Inpainter(m, valid)
+    vals = shading_ratio_fill(inp, img, valid)
+    np.testing.assert_allclose(vals[0], np.broadcast_to([0.5, 0.4, 0.3], vals[0].shape), rtol=0.01)
+    np.testing.assert_allclose(vals[1], np.broadcast_to([0.25, 0.2, 0.15], vals[1].shape), rtol=0.01)
+    # no red/green signal at all (a blue-only field): the harmonic values
+    blue = np.zeros_like(img)
+    blue[..., 2] = img[..., 2] + 0.1
+    np.testing.assert_allclose(shading_ratio_fill(inp, blue, valid), inp.fill(blue), atol=1e-6)
