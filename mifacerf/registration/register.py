@@ -79,7 +79,8 @@ class Options:
     remove_dots: bool = True
     dot_fill: str = "texture"       #: "texture" (.dot_removal.shading_ratio_fill) or "harmonic" (Inpainter)
     remove_unregistered: bool = True  #: also paint out dots detected in 2-D but not registered
-    unregistered_strength: float = 0.5  #: ... when their dot strength in the view reaches this
+    unregistered_strength: float = 0.25  #: ... when their dot strength in the view reaches this (peaks
+    #:   that are no dot stayed below 0.2 on the face in all 144 views of the demo capture: docs/registration.md)
     movable_rings: int = 2          #: non-fiducial vertices this close to a margin follow it
     consensus: bool = True          #: after the progressive snap, the image-space consensus pass (.consensus)
     consensus_min_peak: float = 0.1   #: ... dots in a view: strength-map maxima at least this
@@ -95,7 +96,7 @@ class Options:
     consensus_strong: float = 0.5     #: ... or, weaker than this,
     consensus_weak_shift_px: float = 1.5  #: ... it lies this near the start
     single_view: bool = True          #: then fiducials one view alone shows: position from it, depth from the surface
-    single_view_strength: float = 0.5  #: ... its dot peak at least this strong (as for 2-D dot removal)
+    single_view_strength: float = 0.25  #: ... its dot peak at least this strong (as for 2-D dot removal)
     single_view_search_px: float = 3.0  #: ... this near the point's projection (at most the consensus' spacing cap)
 
 
