@@ -44,6 +44,8 @@ mi = ensure_variant()
 
 import drjit as dr  # noqa: E402
 
+from mifacerf.rendering.parts import skin_in_front_of_parts  # noqa: E402
+
 
 def _environment_of(scene, spec: str | None, height: int = 128):
     """The lighting environment: a named/file environment, or the scene's infinite emitter sampled on a lat-long grid."""
@@ -140,14 +142,16 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
     def sample(self, scene, sampler, ray, medium=None, active=True):
         active = mi.Bool(active)
         si = scene.ray_intersect(ray, active)
-        on_face = active & si.is_valid() & (si.shape == mi.ShapePtr(self.face_shape))
-        tri = dr.select(on_face, si.prim_index, 0)
-        bary = self.frame.barycentric(tri, si.p)
+        # a part poking out through the skin in front of the camera shows the skin (parts.py)
+        on_face, tri, p_face = skin_in_front_of_parts(scene, ray, si, self.face_shape,
+                                                      [shape for _, shape in self.part_shapes], active)
+        tri = dr.select(on_face, tri, 0)
+        bary = self.frame.barycentric(tri, p_face)
         colour, covered, _ = self.frame.shade(tri, bary, on_face)
         on_part = mi.Bool(False)
         part = mi.UInt32(0)
         for k, shape in self.part_shapes:
-            hit = active & si.is_valid() & (si.shape == mi.ShapePtr(shape))
+            hit = active & ~on_face & si.is_valid() & (si.shape == mi.ShapePtr(shape))
             part = dr.select(hit, k, part)
             on_part |= hit
         if self.part_shapes:

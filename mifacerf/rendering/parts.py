@@ -165,6 +165,45 @@ def light_neighbours(directions: np.ndarray) -> list[np.ndarray]:
     return [np.array(sorted(s), np.int64) for s in nb]
 
 
+def skin_in_front_of_parts(scene, ray, si, face_shape, part_shapes, active=True):
+    """The Mitsuba-scene form of the renderer's rule that parts belong inside the skin
+    (:meth:`.renderer.Renderer._parts_inside_skin`): a ray that meets a part shape first and then, past
+    every further part, the *front* of the face shape (the part pokes out through the cheek or a lid)
+    shows that skin. Through the mouth or a lid opening the skin behind a part is back-facing and the
+    part stays.
+
+    ``scene``: a ``mi.Scene``; ``ray``: the camera rays; ``si``: their first intersections; ``face_shape``
+    and ``part_shapes`` (list of ``mi.Shape``). Returns ``(on_face, tri, p)``: whether each lane shows the
+    face, and the face triangle and world point it shows there (Dr.Jit values)."""
+    import drjit as dr
+
+    mi = ensure_variant()
+    face = mi.ShapePtr(face_shape)
+
+    def is_part(hit, mask):
+        out = mi.Bool(False)
+        for shape in part_shapes:
+            out |= mask & hit.is_valid() & (hit.shape == mi.ShapePtr(shape))
+        return out
+
+    active = mi.Bool(active)
+    on_face = active & si.is_valid() & (si.shape == face)
+    tri, p = si.prim_index, si.p
+    look = is_part(si, active)
+    t = si.t
+    for _ in range(2 * len(part_shapes)):   # each closed part: in and out
+        # continue along the same line (as the renderer does: 10 µm past the last hit)
+        t = t + 1e-5
+        nxt = scene.ray_intersect(mi.Ray3f(ray.o + ray.d * t, ray.d), look)
+        t = t + nxt.t
+        skin_front = look & nxt.is_valid() & (nxt.shape == face) & (dr.dot(nxt.n, ray.d) < 0)
+        tri = dr.select(skin_front, nxt.prim_index, tri)
+        p = dr.select(skin_front, nxt.p, p)
+        on_face |= skin_front
+        look = is_part(nxt, look)
+    return on_face, tri, p
+
+
 class CombinedScene:
     """The target's skin template plus its eyes and teeth in one Mitsuba scene, with a part id per triangle
     (0 = skin, 1.. = PARTS index + 1)."""

@@ -57,3 +57,47 @@ def test_a_part_poking_out_shows_the_skin_and_one_behind_an_opening_stays(mi):
     before = hits.tri.copy()
     Renderer._parts_inside_skin(fake, hits, uv, cam, np.asarray(open_skin.vertices))
     np.testing.assert_array_equal(hits.tri, before)
+
+
+def _mitsuba_hits(skin, part, camera, mi):
+    """Through a Mitsuba scene of skin ('face') and part ('eye_left'), the camera's pixel-centre rays:
+    (shows the face, the face point shown (N, 3), the part was hit first, the skin alone's first hit (N, 3))."""
+    from mifacerf.rendering.parts import skin_in_front_of_parts
+
+    def mesh(name, m):
+        shape = mi.Mesh(name, len(m.vertices), len(m.faces))
+        params = mi.traverse(shape)
+        params["vertex_positions"] = mi.Float(np.asarray(m.vertices, np.float32).ravel())
+        params["faces"] = mi.UInt32(np.asarray(m.faces, np.uint32).ravel())
+        params.update()
+        return shape
+
+    face, eye = mesh("face", skin), mesh("eye_left", part)
+    scene = mi.load_dict({"type": "scene", "face": face, "eye_left": eye})
+    jj, ii = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+    o, d = camera.pixel_rays(np.stack([jj.ravel(), ii.ravel()], 1).astype(float))
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(x) for x in o.T.astype(np.float32)]),
+                   mi.Vector3f(*[mi.Float(x) for x in d.T.astype(np.float32)]))
+    si = scene.ray_intersect(ray)
+    on_face, tri, p = skin_in_front_of_parts(scene, ray, si, face, [eye])
+    first_part = np.asarray(si.is_valid() & (si.shape == mi.ShapePtr(eye)))
+    skin_alone = mi.load_dict({"type": "scene", "face": mesh("face", skin)}).ray_intersect(ray)
+    return np.asarray(on_face), np.asarray(p).T, first_part, np.asarray(skin_alone.p).T
+
+
+def test_the_scene_rule_matches_the_renderers(mi):
+    """The Mitsuba-scene form (used by the facerf integrator): the same ball poking out of a sphere
+    shows the skin, at the points the skin alone gives; a ball seen through an opening stays."""
+    cam = camera_ring([(0.0, 0.0)], width=48, height=48, target=(0.0, 0.0, 0.0), face_height=0.3)[0]
+    towards = cam.centre / np.linalg.norm(cam.centre)
+    skin = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    on_face, p, first_part, expected = _mitsuba_hits(skin, ball(0.03, 0.1 * towards), cam, mi)
+    assert first_part.sum() > 20
+    assert on_face[first_part].all()
+    np.testing.assert_allclose(p[first_part], expected[first_part], atol=1e-5)
+
+    centres = skin.triangles_center @ towards
+    open_skin = trimesh.Trimesh(skin.vertices, skin.faces[centres < 0.07], process=False)
+    on_face, _, first_part, _ = _mitsuba_hits(open_skin, ball(0.03, 0.05 * towards), cam, mi)
+    assert first_part.sum() > 20
+    assert not on_face[first_part].any()
