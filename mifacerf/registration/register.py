@@ -691,7 +691,7 @@ class Registrar:
         if self.opt.dot_fill == "texture":
             return shading_ratio_fill(inp, images, valid)
         if self.opt.dot_fill == "harmonic":
-            return inp.fill(images) if len(inp) else np.zeros((len(images), 0, 3), np.float32)
+            return inp.fill(images)
         raise ValueError(f"unknown dot fill {self.opt.dot_fill!r} (expected 'texture' or 'harmonic')")
 
     # ------------------------------------------------------------------ eyes (after all expressions)

@@ -106,7 +106,7 @@ def plan_frame(model, target: np.ndarray, expression_weights: np.ndarray, camera
         raw = np.zeros((used.sum(), C))
         np.add.at(raw, (np.arange(len(idx))[:, None].repeat(3, 1), idx), w)
         vis = model.visible[s][:, used].T  # (n_used, C)
-        near = seen_near(model.visible[s], model.triangles)[:, used].T
+        near = model.visible_near[s][:, used].T
         fallback, lost = _camera_weights(raw, vis, vis, rv, cam_dirs)
         primary, _ = _camera_weights(raw, near, vis, rv, cam_dirs)
         plan.unseen[np.flatnonzero(used)[lost], s] = True

@@ -26,6 +26,7 @@ from __future__ import annotations
 import os
 from collections import OrderedDict
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -118,6 +119,14 @@ class Model:
         self.loaded_fields: list[tuple[str, str]] = []  # every (expression, camera) read from disk, in order
 
     # ---------------------------------------------------------------- access
+    @cached_property
+    def visible_near(self) -> np.ndarray:
+        """(S, C, T) bool: every source's visibility spread over the triangles round each vertex
+        (:func:`.chunks.seen_near`; the primary tier of the camera weights), computed once."""
+        from .chunks import seen_near
+
+        return np.stack([seen_near(v, self.triangles) for v in self.visible])
+
     @property
     def n_lights(self) -> int:
         return len(self.light_directions)
