@@ -1,0 +1,9 @@
+"""The geometry ground floor: small, pure helpers every pipeline stage may import.
+
+This package imports no pipeline stage (capture, synthetic, registration, blending, rendering,
+tracking, evaluation) and nothing heavy at import time; Mitsuba is loaded by
+:mod:`.meshscene` only on first use. Modules, one concept each (flat, named for the method where
+there is a published one):
+
+- :mod:`.footprint`: the size of one pixel at the rig centre (metres per pixel).
+"""
