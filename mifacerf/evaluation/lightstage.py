@@ -1,12 +1,11 @@
 """Proof that the conventions are right: relit OLAT images against path-traced ground truth.
 
-A captured expression seen by a capture camera, relit by the plain weighted sum of its
-OLAT images — each weight the environment's radiance integrated over that light's
-spherical-Voronoi cell (:func:`mifacerf.environment.light_basis`) — must match the
-subject path-traced (Mitsuba, same light transport and camera) under the environment.
-Remaining differences: the light stage's discretisation of the environment (the only
-error the light stage itself makes) and the truth's Monte Carlo noise. PSNR on the face
-mask (:mod:`.masks`); the truth noise floor is reported beside it.
+:func:`layout_vs_truth`: the subject OLAT-rendered with a light layout and relit by the plain
+weighted sum of those images — each weight the environment's radiance integrated over that
+light's spherical-Voronoi cell (:func:`mifacerf.environment.light_basis`) — must match the
+subject path-traced (Mitsuba, same light transport and camera) under the environment. The
+remaining difference is the light stage's discretisation of the environment (the only error the
+light stage itself makes) and the truth's Monte Carlo noise. PSNR on the template's skin (:mod:`.masks`).
 """
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ import numpy as np
 
 from ..capture_folder import Capture
 from ..environment import Environment, light_basis, relight, resolve
-from .masks import classify_pixels, face_mask
+from .masks import classify_pixels
 from .metrics import psnr
 
 
@@ -30,29 +29,6 @@ def _subject_view(out, expression: str | None, camera: str | None):
     expression = expression or cap.expression_names[0]
     cam = cap.rig.camera(camera) if camera else cap.rig.cameras[min(1, len(cap.rig.cameras) - 1)]
     return cap, TruthRenderer.from_synth(out), expression, cam
-
-
-def relit_vs_truth(out, environments, expression: str | None = None, camera: str | None = None,
-                   spp_truth: int = 1024, progress=None) -> list[dict]:
-    """For each environment (generated name, path or :class:`Environment`): PSNR of the relit capture
-    against path-traced truth, plus the truth's own noise floor."""
-    cap, tr, expression, cam = _subject_view(out, expression, camera)
-    field = cap.field(expression, cam.name)
-    rows = []
-    envs = list(environments)
-    for env in (progress(envs) if progress else envs):
-        env = env if isinstance(env, Environment) else resolve(str(env))
-        relit = relight(field, light_basis(env, cap.rig.lights.directions))
-        t1 = tr.render(tr.expressions[expression], cam, env, spp=spp_truth, seed=11)
-        t2 = tr.render(tr.expressions[expression], cam, env, spp=spp_truth, seed=12)
-        truth = 0.5 * (t1 + t2)
-        mask = face_mask(classify_pixels(tr.scene(env), cam)) & (truth[..., 3] > 0.999)
-        rows.append({"environment": env.name, "expression": expression, "camera": cam.name,
-                     "psnr": psnr(relit, truth, mask),
-                     # noise of the averaged truth: half the variance of one render
-                     "truth_noise_psnr": psnr(t1, t2, mask) + 10 * np.log10(4.0),
-                     "lights": len(cap.rig.lights), "pixels": int(mask.sum())})
-    return rows
 
 
 def layout_vs_truth(out, layouts: dict, environments, expression: str | None = None, camera: str | None = None,
@@ -82,10 +58,3 @@ def layout_vs_truth(out, layouts: dict, environments, expression: str | None = N
                          "camera": cam.name, "psnr": psnr(relit, truth, skin), "pixels": int(skin.sum())})
     return rows
 
-
-def markdown_table(rows: list[dict]) -> str:
-    lines = ["| environment | PSNR relit OLAT vs path-traced (dB) | truth noise floor (dB) | lights | face pixels |",
-             "|---|---|---|---|---|"]
-    lines += [f"| {r['environment']} | {r['psnr']:.2f} | {r['truth_noise_psnr']:.1f} | {r['lights']} | {r['pixels']} |"
-              for r in rows]
-    return "\n".join(lines) + "\n"

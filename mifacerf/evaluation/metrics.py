@@ -50,12 +50,6 @@ def psnr_two_truths(image, truth_a, truth_b, mask=None) -> dict:
     return {"psnr": db(mse), "noise_floor": db(noise), "psnr_noise_corrected": db(mse - noise)}
 
 
-def relative_error(image, reference, mask=None) -> float:
-    """Σ|a − b| / Σ|b| on the mask."""
-    a, b, mask = _check(image, reference, mask)
-    return float(np.abs(a - b)[mask].sum() / max(np.abs(b)[mask].sum(), 1e-30))
-
-
 def summary(values) -> dict:
     v = np.asarray([x for x in values if np.isfinite(x)], np.float64)
     if not len(v):
