@@ -17,7 +17,7 @@ LAZY_COMMANDS = {
     "render": "mifacerf.rendering.cli:render_cmd",
     "compress": "mifacerf.rendering.cli:compress_cmd",
     "bench": "mifacerf.evaluation.cli:bench_cmd",
-    "evaluate": "mifacerf.evaluation.cli:evaluate_cmd",
+    "evaluate": "mifacerf.evaluation.cli:evaluate_group",
     "demo": "mifacerf.demo:demo_cmd",
     "track": "mifacerf.tracking.cli:track_cmd",
     "drive": "mifacerf.tracking.cli:drive_cmd",

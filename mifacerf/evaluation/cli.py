@@ -1,4 +1,8 @@
-"""CLI: ``mifacerf bench`` (run time against error) and ``mifacerf evaluate`` (rendering accuracy)."""
+"""CLI: ``mifacerf bench`` (run time against error) and ``mifacerf evaluate …`` (comparisons with the
+synthetic ground truth, one sub-command per stage: ``render``, ``registration``).
+
+Imports sit inside the commands so that ``mifacerf evaluate --help`` stays fast.
+"""
 from __future__ import annotations
 
 import json
@@ -30,16 +34,24 @@ def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick):
     del report
 
 
-@click.command("evaluate")
-@click.argument("synth_out", type=click.Path(exists=True, file_okay=False))
+@click.group("evaluate", context_settings={"help_option_names": ["-h", "--help"]})
+def evaluate_group():
+    """Compare a stage's output with the synthetic ground truth (evaluation only: no stage reads the truth).
+
+    OUT is a 'mifacerf synth' output folder (capture/ and truth/).
+    """
+
+
+@evaluate_group.command("render")
+@click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--out", default="evaluation", show_default=True, type=click.Path(file_okay=False))
 @click.option("--envs", default="sky,interior,gradient", show_default=True)
 @click.option("-n", "n", type=int, default=2, show_default=True, help="Cases per kind (a, b, c, d).")
 @click.option("--seed", type=int, default=None, help="Default: a fresh seed from the clock (recorded).")
 @click.option("--spp-truth", type=int, default=1024, show_default=True)
-def evaluate_cmd(synth_out, model, out, envs, n, seed, spp_truth):
-    """Rendering accuracy against path-traced ground truth: captured, blends, novel views, out-of-set."""
+def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
+    """Rendering accuracy of MODEL against path-traced ground truth: captured, blends, novel views, out-of-set."""
     import time
 
     from tqdm.auto import tqdm
@@ -57,3 +69,26 @@ def evaluate_cmd(synth_out, model, out, envs, n, seed, spp_truth):
                    f"truth noise subtracted {v['psnr_noise_corrected'].get('mean', float('nan')):.2f}), "
                    f"{v['seconds'].get('mean', 0):.2f} s/frame")
     click.echo(f"truth noise floor: {report['truth_noise_psnr']:.1f} dB (lowest case); report: {out / 'report.json'}")
+
+
+@evaluate_group.command("registration")
+@click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
+@click.option("--registration", default=None, type=click.Path(file_okay=False),
+              help="The registration folder to evaluate (default: OUT/capture/registration).")
+@click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False), help="Write the full result here.")
+@click.option("--pictures", default=None, help="Write PNGs of these expressions (comma-separated) ...")
+@click.option("--pictures-dir", default="registration-pictures", show_default=True, type=click.Path(file_okay=False),
+              help="... into this folder.")
+def registration_cmd(synth_out, registration, json_path, pictures, pictures_dir):
+    """A registration of OUT's capture against the truth: fiducials, dot removal, lips and lids, head, teeth,
+    eyes (a Markdown table)."""
+    from . import registration as R
+
+    out = Path(synth_out)
+    res = R.evaluate(out / "capture", out / "truth", registration)
+    click.echo(R.format_table(res))
+    if json_path:
+        Path(json_path).write_text(json.dumps(res, indent=1))
+    for name in (pictures.split(",") if pictures else []):
+        for path in R.pictures(out / "capture", out / "truth", registration, pictures_dir, name.strip()):
+            click.echo(path)

@@ -8,8 +8,8 @@ Public API::
 Modules, one concept each: :mod:`.hand` (hand inputs), :mod:`.proxies`, :mod:`.dots` (filter,
 strength maps), :mod:`.triangulate`, :mod:`.morph`, :mod:`.visibility`, :mod:`.snap`,
 :mod:`.eyes_teeth`, :mod:`.contours` (lips / eyelids), :mod:`.dot_removal`, :mod:`.texcoords`,
-:mod:`.register` (orchestration), :mod:`.report` (evaluation against synthetic truth),
-:mod:`.cli`. Documentation: ``docs/registration.md``.
+:mod:`.register` (orchestration), :mod:`.cli`. Documentation: ``docs/registration.md``. The
+evaluation against the synthetic truth is :mod:`mifacerf.evaluation.registration`.
 """
 __all__ = ["Options", "RegistrationInputError", "register_capture"]
 

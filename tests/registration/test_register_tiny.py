@@ -30,7 +30,7 @@ def tiny(tmp_path_factory):
 
 @pytest.mark.slow
 def test_tiny_registration_against_truth(tiny):
-    from mifacerf.registration.report import evaluate
+    from mifacerf.evaluation.registration import evaluate
 
     cap, truth, out, opened = tiny
     assert opened == [], "registration opened ground-truth files"

@@ -20,31 +20,29 @@
   their rotation (degrees);
   **eyes** — eye-centre error (where the truth has eye transforms).
 
-``python -m mifacerf.registration.report OUT [--registration DIR] [--json FILE]`` prints the table
+``mifacerf evaluate registration OUT [--registration DIR] [--json FILE]`` prints the table
 (``OUT`` a ``mifacerf synth`` output folder with ``capture/`` and ``truth/``).
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import Capture
-from ..registered import Registration
-from .dots import DotFilter, peak_near
-from .eyes_teeth import rotation_angle_deg
-from .hand import Template
-from .proxies import cone_weights, proxies_for
-from .visibility import Visibility
+from ..formats.capture import Capture
+from ..formats.registration import Registration
+from ..registration.dots import DotFilter, peak_near
+from ..registration.eyes_teeth import rotation_angle_deg
+from ..registration.hand import Template
+from ..registration.proxies import cone_weights, proxies_for
+from ..registration.visibility import Visibility
+from ..stats import median_p95
 
 
 def _stats(x):
-    x = np.asarray(x, np.float64)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return None, None
-    return float(np.median(x)), float(np.percentile(x, 95))
+    """(median, p95) of the finite values, unrounded; (None, None) when none is finite."""
+    s = median_p95(x, digits=None)
+    return s["median"], s["p95"]
 
 
 def footprints(cams, X, visible) -> np.ndarray:
@@ -127,7 +125,7 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
             row["head_translation_m"] = float(np.linalg.norm(
                 (r.head_pose[:3, :3] @ c + r.head_pose[:3, 3]) - (Th[:3, :3] @ c + Th[:3, 3])))
         if "part_teeth_lower" in z.files and tpl.lower_teeth_point is not None and np.isfinite(r.teeth).all():
-            from .eyes_teeth import apply
+            from ..registration.eyes_teeth import apply
 
             p_rest = tpl.lower_teeth_point  # the user's template strip: compare the transforms on it
             Tl = z["part_teeth_lower"]
@@ -264,26 +262,3 @@ def pictures(capture, truth, registration, folder, expression: str, crop: int | 
         written.append(path)
     return written
 
-
-def main(argv=None):
-    import argparse
-
-    ap = argparse.ArgumentParser(description="Evaluate a registration of a synthetic capture against its truth")
-    ap.add_argument("out", help="a 'mifacerf synth' output folder (with capture/ and truth/)")
-    ap.add_argument("--registration", default=None)
-    ap.add_argument("--json", default=None, help="write the full result here")
-    ap.add_argument("--pictures", default=None, help="write PNGs of these expressions (comma-separated) ...")
-    ap.add_argument("--pictures-dir", default="registration-pictures", help="... into this folder")
-    a = ap.parse_args(argv)
-    out = Path(a.out)
-    res = evaluate(out / "capture", out / "truth", a.registration)
-    print(format_table(res))
-    if a.json:
-        Path(a.json).write_text(json.dumps(res, indent=1))
-    for name in (a.pictures.split(",") if a.pictures else []):
-        for path in pictures(out / "capture", out / "truth", a.registration, a.pictures_dir, name.strip()):
-            print(path)
-
-
-if __name__ == "__main__":
-    main()
