@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .horn1987 import horn
+from ..geometry.horn1987 import horn
 from .neighbourhoods import Neighbourhoods
 
 __all__ = ["align_neighbourhoods", "local_rotations", "region_deformations"]

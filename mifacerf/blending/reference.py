@@ -1,7 +1,7 @@
 """The straightforward NumPy/SciPy per-vertex evaluation of blend weights (the reference).
 
 For each fiducial vertex in a Python loop, vectorised over frames only:
-Horn-align the frames' neighbourhoods (:func:`~mifacerf.blending.horn`), project
+Horn-align the frames' neighbourhoods (:func:`~mifacerf.geometry.horn1987.horn`), project
 onto the vertex's PCA basis, ``scipy.spatial.Delaunay.find_simplex`` + its
 ``transform`` for the barycentrics (``np.searchsorted`` on the sorted intervals
 for ``m = 1``), and the nearest hull facet (brute force over facets) for targets
@@ -16,7 +16,7 @@ from scipy.spatial import Delaunay
 
 from ._blas import single_threaded_blas
 from .delaunay import LocalTriangulation, barycentric_bruteforce, nearest_on_hull
-from .horn1987 import horn
+from ..geometry.horn1987 import horn
 
 __all__ = ["vertex_coords", "vertex_weights", "reference_fiducial_weights"]
 

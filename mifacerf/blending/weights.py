@@ -457,7 +457,7 @@ def evaluate_group(g: GroupTables, targets_vt: np.ndarray, precision: str = "flo
 def horn_rotations(P, Q, weights=None, precision: str = "float64", B=None) -> np.ndarray:
     """The kernel's Horn rotation on NumPy data (for tests): ``P, Q`` ``(N, k, 3)`` → ``R`` ``(N, 3, 3)``.
 
-    Same conventions as :func:`mifacerf.blending.horn` (``R`` maps ``P`` onto ``Q``); computed by the
+    Same conventions as :func:`mifacerf.geometry.horn1987.horn` (``R`` maps ``P`` onto ``Q``); computed by the
     Jacobi-sweep code that runs inside the evaluator.
     """
     import drjit as dr

@@ -6,4 +6,5 @@ tracking, evaluation) and nothing heavy at import time; Mitsuba is loaded by
 there is a published one):
 
 - :mod:`.footprint`: the size of one pixel at the rig centre (metres per pixel).
+- :mod:`.horn1987`: closed-form absolute orientation (rigid fit of two point sets), Horn (1987).
 """

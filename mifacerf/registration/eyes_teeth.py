@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..blending.horn1987 import horn
+from ..geometry.horn1987 import horn
 from ..camera import Camera
 from .triangulate import triangulate
 

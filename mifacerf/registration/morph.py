@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..blending.horn1987 import horn
+from ..geometry.horn1987 import horn
 
 
 # --------------------------------------------------------------------------------- geometry helpers

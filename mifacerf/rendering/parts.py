@@ -498,7 +498,7 @@ def target_parts_from_mesh(model, mesh: np.ndarray) -> dict:
     """Part transforms for an arbitrary target mesh (§4.2): head pose from the ear and nose-bridge points
     (Horn, against the neutral), eyes and upper teeth rigid with the head; the jaw (lower teeth) from
     the lower lip and chin vertices (Horn, against the neutral)."""
-    from ..blending import horn
+    from ..geometry.horn1987 import horn
 
     template = model.template
     kinds = np.array(_kinds(template))

@@ -4,8 +4,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
-from mifacerf.blending import horn
-from mifacerf.blending.horn1987 import horn_quaternion, quaternion_to_matrix
+from mifacerf.geometry.horn1987 import horn, horn_quaternion, quaternion_to_matrix
 
 SET = settings(max_examples=40, deadline=None)
 pytestmark = pytest.mark.filterwarnings("ignore:Optimal rotation is not uniquely:UserWarning")
