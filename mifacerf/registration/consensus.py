@@ -42,7 +42,7 @@ import numpy as np
 
 from ..camera import Camera
 from .dots import peak_near
-from .triangulate import triangulate
+from ..geometry.triangulate import triangulate
 
 
 @dataclass

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..geometry.horn1987 import horn
 from ..camera import Camera
-from .triangulate import triangulate
+from ..geometry.triangulate import triangulate
 
 
 def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:

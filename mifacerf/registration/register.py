@@ -7,7 +7,7 @@ folder (manifest, images, ``hand/``) and writes a registration folder
 1. **proxies** per (expression, camera) (:mod:`.proxies`, cached);
 2. **dot filter** tuned on the neutral, **dot-strength maps** per view (:mod:`.dots`);
 3. **base model** — the neutral: every template fiducial snapped from the user's position
-   and triangulated from the views (:mod:`.snap`, :mod:`.triangulate`); the template's
+   and triangulated from the views (:mod:`.snap`, :mod:`mifacerf.geometry.triangulate`); the template's
    other vertices placed relative to them (moving-least-squares, :mod:`.morph`);
 4. **every other expression**, one at a time, the one most similar to those already done
    first: initial estimate by a 3-D morph of the coarse mesh from the most similar
@@ -47,7 +47,7 @@ from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
-from .triangulate import triangulate
+from ..geometry.triangulate import triangulate
 from .visibility import Visibility
 
 

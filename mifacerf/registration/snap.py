@@ -8,7 +8,7 @@ occluded (ray-traced against the current mesh estimate) or seen too obliquely ar
 yields the best dot-strength" — vectorised over many points at once: a ball of candidate
 offsets (``radius``, spacing ``step``) about each start, then a finer ball (spacing
 ``step / 3``) about the best; finally each view's sub-pixel peak of the strength map next to
-the point's projection is triangulated (:mod:`.triangulate`), which gives the point to a
+the point's projection is triangulated (:mod:`mifacerf.geometry.triangulate`), which gives the point to a
 fraction of a pixel. A point counts as snapped only when at least two views agree (the
 triangulation's worst reprojection error is below ``max_reproj`` pixels).
 
@@ -36,7 +36,7 @@ import numpy as np
 
 from ..camera import Camera
 from .dots import bilinear, peak_near
-from .triangulate import triangulate
+from ..geometry.triangulate import triangulate
 
 
 def ball(radius: float, step: float) -> np.ndarray:

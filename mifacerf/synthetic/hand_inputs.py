@@ -106,7 +106,7 @@ def _click(rig: Rig, X: np.ndarray, vis: np.ndarray, rng, sigma: float) -> dict:
 def _place(rig: Rig, X: np.ndarray, vis: np.ndarray, rng, sigma: float, max_views: int = 6) -> np.ndarray:
     """3-D points as the user's tool places them: triangulated from noisy clicks; points seen by
     fewer than two views get an isotropic error of the same size (sigma pixel footprints)."""
-    from ..registration.triangulate import triangulate
+    from ..geometry.triangulate import triangulate
 
     clicks = _click(rig, X, vis, rng, sigma)
     uv = np.stack([clicks[c.name] for c in rig.cameras])
@@ -196,7 +196,7 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
     """Write ``CAP_DIR/hand/`` from a ``mifacerf.template/1`` dict whose positions are the neutral's truth
     and the per-expression truth the user looks at. Returns the hand folder."""
     from ..registration.hand import margins_from_holes
-    from ..registration.triangulate import triangulate
+    from ..geometry.triangulate import triangulate
 
     rng = np.random.default_rng(seed + 8111)
     hand = Path(cap_dir) / "hand"

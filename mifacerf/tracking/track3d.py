@@ -13,7 +13,7 @@ allows us to triangulate 3D motion data"):
 3. **search** in every usable camera (:mod:`.health`) about the projected prediction — a small
    window for tracked dots, a wider one and a higher strength threshold for the re-detection of
    lost dots; one image dot per dot (:func:`.track2d.resolve_conflicts`, tracked dots first);
-4. **triangulation** (:func:`mifacerf.registration.triangulate.triangulate`, worst view dropped
+4. **triangulation** (:func:`mifacerf.geometry.triangulate.triangulate`, worst view dropped
    while views disagree by more than ``max_reproj_px``), gated against the prediction. A dot
    triangulated from ≥ 2 consistent views is *tracked* (status 1) in that frame; any other is
    *untracked* (status 0) and placed from its neighbours.
@@ -35,7 +35,7 @@ from ..camera import Camera
 from ..registration.eyes_teeth import apply as apply_T, robust_rigid
 from ..registration.morph import mls_affine
 from ..registration.snap import dot_graph
-from ..registration.triangulate import triangulate
+from ..geometry.triangulate import triangulate
 from ..registration.visibility import Visibility
 from .track2d import Detector, local_maxima, resolve_conflicts, search
 

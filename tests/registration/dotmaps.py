@@ -2,7 +2,7 @@
 seen by the six-camera ring."""
 import numpy as np
 
-from mifacerf.registration.triangulate import project_all
+from mifacerf.geometry.triangulate import project_all
 from mifacerf.rig import CAMERA_LAYOUTS, camera_ring
 
 

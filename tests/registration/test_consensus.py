@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mifacerf.registration.consensus import consensus_snap, free_peaks, hypotheses, view_peaks
-from mifacerf.registration.triangulate import project_all
+from mifacerf.geometry.triangulate import project_all
 
 from .dotmaps import dot_grid, strength_maps
 

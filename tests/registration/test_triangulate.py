@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mifacerf.registration.triangulate import project_all, triangulate
+from mifacerf.geometry.triangulate import project_all, triangulate
 from mifacerf.rig import CAMERA_LAYOUTS, camera_ring
 
 
