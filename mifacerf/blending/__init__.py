@@ -16,10 +16,11 @@ Modules, one concept each: :mod:`.neighbourhoods`,
 (m-D triangulation, barycentrics, out-of-hull rule), :mod:`.weights` (Dr.Jit
 evaluator), :mod:`.culling` (regions, similarity graph, minimum-degree greedy
 MIS), :mod:`.reference` (per-vertex NumPy/SciPy), :mod:`.model` (``BlendModel``),
-:mod:`.toy` (analytic test meshes), :mod:`.benchmark`, :mod:`.measure`.
+:mod:`.toy` (analytic test meshes), :mod:`.benchmark` (timing). The measurement against the
+synthetic subject's true deformations is :mod:`mifacerf.evaluation.blending`.
 Documentation: ``docs/blending.md``.
 """
-from .culling import REGION_NAMES, load_regions, save_regions, synthetic_regions
+from .culling import REGION_NAMES, load_regions, save_regions
 from .deformation import align_neighbourhoods, local_rotations, region_deformations
 from .model import BlendModel, SparseWeights
 from .neighbourhoods import Neighbourhoods, neighbourhoods
@@ -35,5 +36,4 @@ __all__ = [
     "REGION_NAMES",
     "load_regions",
     "save_regions",
-    "synthetic_regions",
 ]

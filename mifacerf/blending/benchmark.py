@@ -1,6 +1,6 @@
 """Benchmark: blend weights of 300 vertices × 60 sources × 10,000 target frames.
 
-    python -m mifacerf.blending.benchmark [--vertices 300] [--sources 60] [--frames 10000]
+    mifacerf evaluate blending-speed [--vertices 300] [--sources 60] [--frames 10000] [--json FILE]
 
 Times, in the same run and on the same targets:
 
@@ -18,8 +18,6 @@ activate 1-4 of them under random head poses; targets are random blends of the s
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import time
@@ -141,22 +139,3 @@ def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, s
     out["load_after"] = os.getloadavg()[0]
     say(f"load average before / after: {out['load_before']:.1f} / {out['load_after']:.1f} on {os.cpu_count()} cores")
     return out
-
-
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--vertices", type=int, default=300)
-    ap.add_argument("--sources", type=int, default=60)
-    ap.add_argument("--frames", type=int, default=10000)
-    ap.add_argument("--threads", type=int, help="Dr.Jit worker threads (default: all cores)")
-    ap.add_argument("--json", help="also write the numbers to this file")
-    a = ap.parse_args(argv)
-    out = run(a.vertices, a.sources, a.frames, threads=a.threads)
-    if a.json:
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
-    return out
-
-
-if __name__ == "__main__":
-    main()

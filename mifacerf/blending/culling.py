@@ -30,8 +30,8 @@ Conventions (documented choices beyond the paper):
 
 Region files for real templates are JSON: ``{"regions": {"forehead": [vertex ids...], ...}}``
 (:func:`load_regions`, :func:`save_regions`); a registration template file (``mifacerf.template/1``,
-which has the same ``regions`` member) loads directly.  The synthetic subject's template supplies the
-defaults (:func:`synthetic_regions`).
+which has the same ``regions`` member) loads directly; the model build takes them from the
+registration template.
 """
 from __future__ import annotations
 
@@ -53,7 +53,6 @@ __all__ = [
     "allowed_sources",
     "load_regions",
     "save_regions",
-    "synthetic_regions",
     "check_regions",
 ]
 
@@ -187,13 +186,6 @@ def load_regions(path) -> dict:
     if not isinstance(data, dict) or not isinstance(data.get("regions"), dict):
         raise ValueError(f"{path}: expected a JSON object with a 'regions' object")
     return {str(k): np.asarray(v, dtype=np.int64) for k, v in data["regions"].items()}
-
-
-def synthetic_regions() -> dict:
-    """The synthetic subject's template regions ``{name: vertex ids}`` (builds the subject: slow once)."""
-    from mifacerf.synthetic.subject import default_subject
-
-    return {str(k): np.asarray(v, dtype=np.int64) for k, v in default_subject().template.regions.items()}
 
 
 def save_regions(path, regions) -> None:

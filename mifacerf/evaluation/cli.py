@@ -92,3 +92,47 @@ def registration_cmd(synth_out, registration, json_path, pictures, pictures_dir)
     for name in (pictures.split(",") if pictures else []):
         for path in R.pictures(out / "capture", out / "truth", registration, pictures_dir, name.strip()):
             click.echo(path)
+
+
+@evaluate_group.command("blending")
+@click.option("--subject", type=click.Choice(["synthetic", "toy"]), default="synthetic", show_default=True)
+@click.option("--residual-threshold", type=float, default=None, help="Default: the model's.")
+@click.option("--similarity-threshold", type=float, default=None, help="Default: the model's.")
+@click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False), help="Folder for the pictures.")
+@click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False), help="Write the numbers here.")
+def blending_cmd(subject, residual_threshold, similarity_threshold, out_dir, json_path):
+    """The §5 weights against true deformations: local-deformation error with and without culling."""
+    import os
+
+    from . import blending as B
+
+    if subject == "synthetic":
+        try:
+            problem = B.synthetic_problem()
+        except (ImportError, AttributeError, ModuleNotFoundError) as exc:
+            raise click.ClickException(f"the synthetic subject is not available ({exc}); use --subject toy") from exc
+    else:
+        problem = B.toy_problem()
+    out = B.run(problem, residual_threshold, similarity_threshold, out_dir=out_dir)
+    if out_dir:
+        B.dims_picture(problem, (5e-5, 2e-4, 5e-4), os.path.join(out_dir, "blending_dims_thresholds.png"))
+    click.echo(json.dumps(out, indent=1))
+    if json_path:
+        with open(json_path, "w", encoding="utf-8") as f:
+            json.dump(out, f, indent=1)
+
+
+@evaluate_group.command("blending-speed")
+@click.option("--vertices", type=int, default=300, show_default=True)
+@click.option("--sources", type=int, default=60, show_default=True)
+@click.option("--frames", type=int, default=10000, show_default=True)
+@click.option("--threads", type=int, default=None, help="Dr.Jit worker threads (default: all cores).")
+@click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False), help="Also write the numbers here.")
+def blending_speed_cmd(vertices, sources, frames, threads, json_path):
+    """Time the §5 weights: the Dr.Jit evaluator against the NumPy/SciPy reference (toy sheet)."""
+    from ..blending.benchmark import run
+
+    out = run(vertices, sources, frames, threads=threads)
+    if json_path:
+        with open(json_path, "w", encoding="utf-8") as f:
+            json.dump(out, f, indent=1)

@@ -1,6 +1,6 @@
-"""Measurement of the blending on a subject: reconstruction error of the local deformation, culling.
+"""Blending on a subject against its true deformations: reconstruction error of the local deformation, culling.
 
-    python -m mifacerf.blending.measure [--subject synthetic|toy] [--out docs/img] [--json FILE]
+    mifacerf evaluate blending [--subject synthetic|toy] [--out docs/img] [--json FILE]
 
 For held-out targets — random blends of the sources' parameters and out-of-set parameter vectors —
 the weights of every fiducial vertex reconstruct the local deformation as ``Σ_i w_i D_i(v)`` (the
@@ -12,14 +12,12 @@ kept counts per region).
 """
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 
 import numpy as np
 
-from .model import BlendModel
+from ..blending.model import BlendModel
 
 
 def local_error(model: BlendModel, D_src, D_tgt, W) -> np.ndarray:
@@ -45,7 +43,7 @@ def summarise(e: np.ndarray) -> dict:
 
 def toy_problem(seed: int = 0):
     """The toy sheet (:mod:`.toy`): 40 sources, 12 blendshapes, regions from the toy."""
-    from .toy import random_sources, toy_subject
+    from ..blending.toy import random_sources, toy_subject
 
     sub = toy_subject(nx=24, ny=20, n_shapes=12, seed=seed + 3)
     S, params = random_sources(sub, 40, seed=seed + 1, max_active=4)
@@ -66,7 +64,7 @@ def synthetic_problem(seed: int = 0, n_sources: int = 60, texture_resolution: in
     registration template.  Out-of-set targets: every control drawn uniformly in its range with
     probability 0.3 (else at its default), head pose included.
     """
-    from mifacerf.synthetic.subject import default_subject
+    from ..synthetic.subject import default_subject
 
     subject = default_subject(texture_resolution)
     tpl = subject.template
@@ -93,7 +91,7 @@ def synthetic_problem(seed: int = 0, n_sources: int = 60, texture_resolution: in
 
 def run(problem: dict, residual_threshold=None, similarity_threshold=None, n_blends: int = 60,
         out_dir: str | None = None, seed: int = 0, precision: str = "float64") -> dict:
-    from .model import DEFAULT_RESIDUAL_THRESHOLD, DEFAULT_SIMILARITY_THRESHOLD
+    from ..blending.model import DEFAULT_RESIDUAL_THRESHOLD, DEFAULT_SIMILARITY_THRESHOLD
 
     rt = DEFAULT_RESIDUAL_THRESHOLD if residual_threshold is None else residual_threshold
     st = DEFAULT_SIMILARITY_THRESHOLD if similarity_threshold is None else similarity_threshold
@@ -210,32 +208,3 @@ def _error_picture(problem, model, e_plain, e_cull, path):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--subject", choices=["synthetic", "toy"], default="synthetic")
-    ap.add_argument("--residual-threshold", type=float)
-    ap.add_argument("--similarity-threshold", type=float)
-    ap.add_argument("--out", help="folder for the pictures")
-    ap.add_argument("--json", help="write the numbers to this file")
-    a = ap.parse_args(argv)
-    if a.subject == "synthetic":
-        try:
-            problem = synthetic_problem()
-        except (ImportError, AttributeError, ModuleNotFoundError) as exc:
-            raise SystemExit(f"the synthetic subject is not available ({exc}); use --subject toy") from exc
-    else:
-        problem = toy_problem()
-    out = run(problem, a.residual_threshold, a.similarity_threshold, out_dir=a.out)
-    if a.out:
-        dims_picture(problem, (5e-5, 2e-4, 5e-4), os.path.join(a.out, "blending_dims_thresholds.png"))
-    print(json.dumps(out, indent=1))
-    if a.json:
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
-    return out
-
-
-if __name__ == "__main__":
-    main()

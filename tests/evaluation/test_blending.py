@@ -1,16 +1,8 @@
-"""Smoke tests of the benchmark and measurement scripts at toy sizes (not timed)."""
+"""Smoke test of the blending measurement against true deformations at a toy size (not timed)."""
 import numpy as np
 
-from mifacerf.blending import benchmark, measure
 from mifacerf.blending.toy import random_sources, toy_subject
-
-
-def test_benchmark_runs_and_agrees():
-    out = benchmark.run(n_vertices=48, n_sources=10, n_frames=30, quiet=True)
-    assert out["vertices"] == 48 and out["frames"] == 30
-    assert out["max_dense_diff_float64"] < 1e-7
-    assert out["ghost_simplices"] > 0            # the walk meets ghost slivers here (a case that once failed)
-    assert out["ratio_float64"] > 0 and out["reference_s"] > 0
+from mifacerf.evaluation import blending as measure
 
 
 def test_measure_runs_and_blending_beats_the_neutral(tmp_path):
@@ -27,3 +19,16 @@ def test_measure_runs_and_blending_beats_the_neutral(tmp_path):
     assert set(out["kept"]) == set(sub.regions) and all(1 <= k <= 12 for k in out["kept"].values())
     assert (tmp_path / "blending_dims_culling.png").stat().st_size > 10_000
     assert (tmp_path / "blending_error.png").stat().st_size > 10_000
+
+
+def test_cli_on_the_toy_sheet(tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from mifacerf.cli import main
+
+    r = CliRunner().invoke(main, ["evaluate", "blending", "--subject", "toy", "--json", str(tmp_path / "b.json")])
+    assert r.exit_code == 0, r.output
+    out = json.loads((tmp_path / "b.json").read_text())
+    assert out["subject"] == "toy sheet" and out["errors"]["out-of-set"]["targets"] == 60
