@@ -2,7 +2,7 @@
 
 ``register_capture(CAPTURE)`` — what ``mifacerf register`` runs. It reads only the capture
 folder (manifest, images, ``hand/``) and writes a registration folder
-(:mod:`mifacerf.registered`, default ``CAPTURE/registration/``):
+(:mod:`mifacerf.formats.registration`, default ``CAPTURE/registration/``):
 
 1. **proxies** per (expression, camera) (:mod:`.proxies`, cached);
 2. **dot filter** tuned on the neutral, **dot-strength maps** per view (:mod:`.dots`);
@@ -34,13 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import Capture
-from ..registered import RegisteredExpression, RegistrationWriter
+from ..formats.capture import Capture
+from ..formats.registration import RegisteredExpression, RegistrationWriter
 from . import eyes_teeth as ET
 from .contours import curve_residuals, propagate, relax_margin, rings
-from .dot_removal import Inpainter, dot_mask, shading_ratio_fill
+from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS, Inpainter, dot_mask, fill_dots
 from .dots import DotFilter, face_mask, peak_near
 from .hand import HandInputs, Template, read_hand_inputs
+from .overrides import fixed_positions
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
 from .proxies import proxies_for
 from .consensus import consensus_snap, free_peaks, view_peaks
@@ -77,7 +78,7 @@ class Options:
     cone_deg: float = 60.0          #: cone omitted from the diffuse proxy
     removal_margin_px: float = 1.0  #: dot removal radius beyond the dot's image radius
     remove_dots: bool = True
-    dot_fill: str = "texture"       #: "texture" (.dot_removal.shading_ratio_fill) or "harmonic" (Inpainter)
+    dot_fill: str = DEFAULT_DOT_FILL_METHOD  #: a .dot_removal.DOT_FILL_METHODS name: "texture" or "harmonic"
     remove_unregistered: bool = True  #: also paint out dots detected in 2-D but not registered
     unregistered_strength: float = 0.25  #: ... when their dot strength in the view reaches this (peaks
     #:   that are no dot stayed below 0.2 on the face in all 144 views of the demo capture: docs/registration.md)
@@ -98,6 +99,11 @@ class Options:
     single_view: bool = True          #: then fiducials one view alone shows: position from it, depth from the surface
     single_view_strength: float = 0.25  #: ... its dot peak at least this strong (as for 2-D dot removal)
     single_view_search_px: float = 3.0  #: ... this near the point's projection (at most the consensus' spacing cap)
+
+    def __post_init__(self):
+        from ..methods import lookup
+
+        lookup(DOT_FILL_METHODS, self.dot_fill, "dot fill")   # an unknown fill fails here, not after hours
 
 
 @dataclass
@@ -544,6 +550,11 @@ class Registrar:
                        for k, n in enumerate(choice_names)}
         e.report["reference"] = {n: int((choice == k).sum()) for k, n in enumerate(choice_names)}
         X, snapped, _ = self.register_dots(e, views, pred, known, radius)
+        fixed = fixed_positions(self.cap.root, name, self.cams, T, e.flags)   # hand fixes (hand/overrides.json)
+        for vid, p in fixed.items():
+            X[vid], snapped[vid] = p, True
+        if fixed:
+            e.report["hand_fixed"] = sorted(fixed)
         status = np.zeros(T, np.int8)
         status[self.dots[snapped[self.dots]]] = 1
         unsnapped_known = [int(v) for v in known if self.is_dot[v] and not snapped[v]]
@@ -572,6 +583,8 @@ class Registrar:
             if not self.is_dot[vid]:
                 V[vid] = p
                 status[vid] = 1
+        for vid, p in fixed.items():   # the user's fixes win over the placement of extras
+            V[vid], status[vid] = p, 1
         V = self.relax_contours(name, V, status, e)
         T_head = self.head_pose(name, V, status, known, e)
         if name == self.neutral:
@@ -688,11 +701,7 @@ class Registrar:
 
     def _dot_fill(self, inp: Inpainter, images: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Values (L, P, 3) filling ``inp``'s pixels of ``images`` (L, H, W, 3) by ``Options.dot_fill``."""
-        if self.opt.dot_fill == "texture":
-            return shading_ratio_fill(inp, images, valid)
-        if self.opt.dot_fill == "harmonic":
-            return inp.fill(images)
-        raise ValueError(f"unknown dot fill {self.opt.dot_fill!r} (expected 'texture' or 'harmonic')")
+        return fill_dots(inp, images, valid, method=self.opt.dot_fill)
 
     # ------------------------------------------------------------------ eyes (after all expressions)
     def finish_eyes(self) -> dict:
