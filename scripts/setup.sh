@@ -46,6 +46,12 @@ if [ -z "${DRJIT_LIBLLVM_PATH:-}" ] && case "${MIFACERF_VARIANT:-llvm_ad_rgb}" i
   have_llvm || die "libllvm19 installed but no libLLVM >= 16 found; set DRJIT_LIBLLVM_PATH to your libLLVM.so"
 fi
 
+# 2b. Debian's chromium and its WebDriver: the studio's browser tests drive them (optional for the rest)
+if ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; then
+  say "installing Debian's chromium and chromium-driver (for the studio's browser tests)"
+  apt_install chromium chromium-driver || say "could not install chromium / chromium-driver: the studio's browser tests will be skipped"
+fi
+
 # 3. The virtual environment and the package
 if [ ! -x .venv/bin/python ]; then
   say "creating the virtual environment .venv"
