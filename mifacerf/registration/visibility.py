@@ -35,7 +35,7 @@ class Visibility:
         self._scene = None
 
     def scene(self, V: np.ndarray):
-        from ..rendering.meshscene import MeshScene
+        from ..geometry.meshscene import MeshScene
 
         if self._scene is None:
             self._scene = MeshScene(V, self.F)

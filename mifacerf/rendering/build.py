@@ -15,7 +15,7 @@ import numpy as np
 
 from ..capture_folder import Capture
 from ..registered import Registration
-from .meshscene import MeshScene
+from ..geometry.meshscene import MeshScene
 from .parts import build_part_fields, choose_references, part_sources, part_visibility
 from .model import ModelWriter
 

@@ -209,7 +209,7 @@ class CombinedScene:
     (0 = skin, 1.. = PARTS index + 1)."""
 
     def __init__(self, skin_vertices, skin_triangles, meshes: dict):
-        from .meshscene import MeshScene
+        from ..geometry.meshscene import MeshScene
 
         self.names = [p for p in PARTS if p in meshes]
         verts = [np.asarray(skin_vertices, np.float64)]

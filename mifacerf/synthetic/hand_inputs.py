@@ -58,7 +58,7 @@ _SCENES: dict = {}
 
 def _visibility(rig: Rig, truth: TruthExpression, points: np.ndarray, min_cos: float = 0.25) -> np.ndarray:
     """(C, N) which cameras see each point (ray-traced against the truth surface, not grazing)."""
-    from ..rendering.meshscene import MeshScene
+    from ..geometry.meshscene import MeshScene
 
     V, F = truth.mesh
     key = id(truth)

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import trimesh
 
-from mifacerf.rendering.meshscene import MeshScene
+from mifacerf.geometry.meshscene import MeshScene
 from mifacerf.rendering.renderer import Renderer
 from mifacerf.rig import camera_ring
 

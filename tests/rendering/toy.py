@@ -10,7 +10,7 @@ import trimesh
 
 from mifacerf.capture_folder import CaptureWriter, ExpressionEntry
 from mifacerf.registered import RegisteredExpression, RegistrationWriter
-from mifacerf.rendering.meshscene import MeshScene
+from mifacerf.geometry.meshscene import MeshScene
 from mifacerf.rig import LightStage, Rig, camera_ring
 from mifacerf.synthetic.olat import render_olat
 from mifacerf.variant import ensure_variant

@@ -31,7 +31,7 @@ def write_truth_registration(out: Path) -> Path:
     """A registration folder written from the synthetic truth (test code only)."""
     from mifacerf.capture_folder import Capture
     from mifacerf.registered import RegisteredExpression, RegistrationWriter
-    from mifacerf.rendering.meshscene import MeshScene
+    from mifacerf.geometry.meshscene import MeshScene
 
     from mifacerf.synthetic import default_subject
 

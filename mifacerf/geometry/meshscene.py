@@ -3,6 +3,9 @@
 Vertices are updated in place (``mi.traverse``), so one scene serves every
 expression and frame. Hits are reported as (triangle, barycentrics, distance):
 barycentric ``(b0, b1, b2)`` weights the triangle's vertices ``faces[tri]`` in order.
+Positions and distances are world coordinates in metres. Mitsuba (the variant chosen by
+:mod:`mifacerf.variant`) is imported when the first :class:`MeshScene` is built, not when this
+module is imported.
 """
 from __future__ import annotations
 
