@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import click
 
+from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS
+
 
 @click.command("register")
 @click.argument("capture", type=click.Path(exists=True, file_okay=False))
@@ -12,7 +14,7 @@ import click
               "the neutral is always registered first).")
 @click.option("--force", is_flag=True, help="Register again expressions already registered.")
 @click.option("--no-dot-removal", is_flag=True, help="Skip removing the dots from the OLAT images.")
-@click.option("--dot-fill", type=click.Choice(["texture", "harmonic"]), default="texture", show_default=True,
+@click.option("--dot-fill", type=click.Choice(list(DOT_FILL_METHODS)), default=DEFAULT_DOT_FILL_METHOD, show_default=True,
               help="How dots are filled: texture-aware with each light's share kept, or harmonic (smooth).")
 @click.option("--radius-px", type=float, default=None, help="3-D search radius of the snap, in pixel footprints.")
 @click.option("--floor", type=float, default=None,

@@ -2,14 +2,15 @@
 
 For one (expression, camera), the registered fiducials visible in that view are projected;
 every pixel whose centre lies within ``r + margin`` pixels of a dot centre (``r`` the dot's
-image radius) is replaced. Two fills:
+image radius) is replaced. Two fills, chosen by name (:data:`DOT_FILL_METHODS`, :func:`fill_dots`;
+``mifacerf register --dot-fill``):
 
-* :class:`Inpainter` — the **harmonic interpolation** of the pixels round it (the solution of
+* ``harmonic``, :class:`Inpainter` — the **harmonic interpolation** of the pixels round it (the solution of
   Laplace's equation inside the mask with the surrounding pixels as boundary values). Linear
   and the same for every light: one sparse operator per (expression, camera), applied to all
   lights and channels at once. Smooth: the skin's texture and any shadow edge or highlight
   crossing the dot are lost.
-* :func:`shading_ratio_fill` (the default of ``mifacerf register``) — the ink changes the skin's
+* ``texture``, :func:`shading_ratio_fill` (the default) — the ink changes the skin's
   *colour*, not how the surface is lit: a dot pixel's share of each light,
   ``f_l = Y(I_l) / Σ_l' Y(I_l')`` with ``Y`` the red + green signal (the yellow ink reflects
   little blue), is kept from the observed pixel, and only the all-lights sum ``D = Σ_l I_l`` is
@@ -224,3 +225,24 @@ def _frequency_selective_fill(image: np.ndarray, known: np.ndarray, block: int =
     out = np.zeros_like(padded)
     cv2.xphoto.inpaint(padded, padded_known, out, cv2.xphoto.INPAINT_FSR_FAST)
     return out[block:block + h, block:block + w]
+
+
+def harmonic_fill(inpainter: Inpainter, images: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Dot fill ``harmonic``: :meth:`Inpainter.fill` of ``images`` (L, H, W, C) → (L, P, C) (``valid`` unused:
+    the inpainter already keeps the background out)."""
+    return inpainter.fill(images)
+
+
+#: how dot pixels are filled: name → fill(inpainter, images (L, H, W, 3), valid (H, W) | None) → (L, P, 3);
+#: the first is the default
+DOT_FILL_METHODS = {"texture": shading_ratio_fill, "harmonic": harmonic_fill}
+DEFAULT_DOT_FILL_METHOD = "texture"
+
+
+def fill_dots(inpainter: Inpainter, images: np.ndarray, valid: np.ndarray | None = None,
+              method: str = DEFAULT_DOT_FILL_METHOD) -> np.ndarray:
+    """Values (L, P, 3) for ``inpainter``'s pixels of ``images`` (L, H, W, 3) by the fill ``method``
+    (:data:`DOT_FILL_METHODS`)."""
+    from ..methods import lookup
+
+    return lookup(DOT_FILL_METHODS, method, "dot fill")(inpainter, images, valid)

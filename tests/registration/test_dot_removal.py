@@ -1,5 +1,6 @@
 """Harmonic dot removal: exact on harmonic images, one operator for every light, background kept out."""
 import numpy as np
+import pytest
 
 from mifacerf.registration.dot_removal import Inpainter, dot_mask
 
@@ -117,3 +118,29 @@ def test_texture_fill_keeps_the_background_out_and_falls_back_without_signal():
     blue = np.zeros_like(img)
     blue[..., 2] = img[..., 2] + 0.1
     np.testing.assert_allclose(shading_ratio_fill(inp, blue, valid), inp.fill(blue), atol=1e-6)
+
+
+def test_each_dot_fill_through_its_dispatcher():
+    """DOT_FILL_METHODS by name: each fill through fill_dots; the default is the texture-aware fill;
+    an unknown name is refused (by the dispatcher, Options and the CLI) with the choices."""
+    from mifacerf.registration import dot_removal as DR
+    from mifacerf.registration.cli import register_cmd
+    from mifacerf.registration.register import Options
+
+    h = w = 32
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    field = np.stack([np.stack([0.2 + 0.01 * xx, 0.3 + 0.005 * yy, 0.1 + 0 * xx], -1) * k for k in (1.0, 0.5)])
+    inp = DR.Inpainter(DR.dot_mask((h, w), np.array([[15.0, 16.0]]), 3.0))
+    for method, fill in DR.DOT_FILL_METHODS.items():
+        got = DR.fill_dots(inp, field, None, method=method)
+        assert got.shape == (2, len(inp), 3) and np.isfinite(got).all()
+        np.testing.assert_array_equal(got, fill(inp, field, None))
+    np.testing.assert_array_equal(DR.fill_dots(inp, field, method="harmonic"), inp.fill(field))
+    np.testing.assert_array_equal(DR.fill_dots(inp, field), DR.shading_ratio_fill(inp, field))
+    with pytest.raises(ValueError, match="unknown dot fill method 'blur'; choose one of texture, harmonic"):
+        DR.fill_dots(inp, field, method="blur")
+    with pytest.raises(ValueError, match="unknown dot fill method 'blur'"):
+        Options(dot_fill="blur")
+    assert Options().dot_fill == DR.DEFAULT_DOT_FILL_METHOD == next(iter(DR.DOT_FILL_METHODS))
+    option = next(p for p in register_cmd.params if p.name == "dot_fill")
+    assert list(option.type.choices) == list(DR.DOT_FILL_METHODS) and option.default == "texture"
