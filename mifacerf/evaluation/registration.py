@@ -32,7 +32,7 @@ import numpy as np
 from ..formats.capture import Capture
 from ..formats.registration import Registration
 from ..registration.dots import DotFilter, peak_near
-from ..registration.eyes_teeth import rotation_angle_deg
+from ..geometry.rigid import rotation_angle_deg
 from ..registration.hand import Template
 from ..registration.proxies import cone_weights, proxies_for
 from ..registration.visibility import Visibility
@@ -125,7 +125,7 @@ def evaluate(capture, truth, registration=None, expressions=None, dots_residual:
             row["head_translation_m"] = float(np.linalg.norm(
                 (r.head_pose[:3, :3] @ c + r.head_pose[:3, 3]) - (Th[:3, :3] @ c + Th[:3, 3])))
         if "part_teeth_lower" in z.files and tpl.lower_teeth_point is not None and np.isfinite(r.teeth).all():
-            from ..registration.eyes_teeth import apply
+            from ..geometry.rigid import apply
 
             p_rest = tpl.lower_teeth_point  # the user's template strip: compare the transforms on it
             Tl = z["part_teeth_lower"]

@@ -2,7 +2,7 @@
 
 * **Head pose** — "one point on each ear and one point on the bridge of the nose, which
   together determine a rigid transformation": the three points of an expression against
-  the same three in the neutral, Horn's closed form (:func:`rigid_from_points`). Where
+  the same three in the neutral, Horn's closed form (:func:`mifacerf.geometry.rigid.rigid_from_points`). Where
   the marks are missing, a robust rigid fit to the registered fiducials (the most rigid
   third, iteratively trimmed) stands in, and the report says so.
 * **Upper teeth** — rigid with the skull: the head pose itself.
@@ -25,46 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry.horn1987 import horn
 from ..camera import Camera
+from ..geometry.rigid import apply, homogeneous, rigid_from_points
 from ..geometry.triangulate import triangulate
-
-
-def homogeneous(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
-
-
-def apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
-    return np.asarray(P, np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
-def rotation_angle_deg(R: np.ndarray) -> float:
-    """The angle (degrees) of the rotation (3, 3) ``R``."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
-
-
-def rigid_from_points(P_neutral: np.ndarray, P_expr: np.ndarray) -> np.ndarray:
-    """The rigid transform (4, 4) that best maps ``P_neutral`` (N ≥ 3, 3) onto ``P_expr``."""
-    R, t = horn(np.asarray(P_neutral, np.float64), np.asarray(P_expr, np.float64))
-    return homogeneous(R, t)
-
-
-def robust_rigid(P_neutral: np.ndarray, P_expr: np.ndarray, keep: float = 0.35, iterations: int = 6) -> np.ndarray:
-    """A rigid fit to the most rigidly moving ``keep`` fraction of the points (iteratively trimmed)."""
-    P, Q = np.asarray(P_neutral, np.float64), np.asarray(P_expr, np.float64)
-    m = np.isfinite(P).all(1) & np.isfinite(Q).all(1)
-    P, Q = P[m], Q[m]
-    sel = np.arange(len(P))
-    T = rigid_from_points(P, Q)
-    for _ in range(iterations):
-        r = np.linalg.norm(apply(T, P) - Q, axis=1)
-        n = max(3, int(keep * len(P)))
-        sel = np.argsort(r)[:n]
-        T = rigid_from_points(P[sel], Q[sel])
-    return T
 
 
 def refine_rigid(T0: np.ndarray, P: np.ndarray, Q: np.ndarray, Pr: np.ndarray, Qr: np.ndarray, scale: float,

@@ -48,6 +48,7 @@ from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
+from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, rotation_angle_deg
 from ..geometry.triangulate import triangulate
 from .visibility import Visibility
 
@@ -449,13 +450,13 @@ class Registrar:
         if len(common) == 3:
             P = np.array([ref[k] for k in common])
             Q = np.array([marks[k] for k in common])
-            T3 = ET.rigid_from_points(P, Q)
+            T3 = rigid_from_points(P, Q)
             T, n_used = ET.refine_rigid(T3, P, Q, N.vertices[rigid], X[rigid], self.fp)
             dR = T3[:3, :3].T @ T[:3, :3]
             e.report["head_pose"] = {
                 "source": f"ear and nose-bridge points, refined with {n_used} rigidly moving fiducials "
                           "(forehead, nose)",
-                "refinement_deg": round(ET.rotation_angle_deg(dR), 4)}
+                "refinement_deg": round(rotation_angle_deg(dR), 4)}
             return T
         if len(both) < 3:
             e.flags.append("head pose: no ear / nose-bridge points and fewer than three registered fiducials; "
@@ -465,7 +466,7 @@ class Registrar:
         e.flags.append(f"head pose: ear / nose-bridge points missing ({sorted(set(HEAD) - set(common))}); "
                        "fitted rigidly to the most rigid third of the registered fiducials instead")
         e.report["head_pose"] = {"source": "robust rigid fit to registered fiducials (no ear / nose marks)"}
-        return ET.robust_rigid(N.vertices[both], X[both])
+        return robust_rigid(N.vertices[both], X[both])
 
     def jaw_pose(self, X: np.ndarray, status: np.ndarray) -> tuple[np.ndarray | None, int]:
         """Rigid fit (4, 4) neutral → expression of the registered fiducials of the jaw regions
@@ -479,7 +480,7 @@ class Registrar:
         ids = ids[(status[ids] == 1) & (N.status[ids] == 1)]
         if len(ids) < 3 or np.linalg.svd(N.vertices[ids] - N.vertices[ids].mean(0), compute_uv=False)[1] < 2e-3:
             return None, len(ids)
-        return ET.rigid_from_points(N.vertices[ids], X[ids]), len(ids)
+        return rigid_from_points(N.vertices[ids], X[ids]), len(ids)
 
     def place_teeth(self, name: str, T_head: np.ndarray, e: Expr, X: np.ndarray, status: np.ndarray) -> np.ndarray:
         """Rigid transforms (2, 4, 4) of the upper and lower teeth (template rest frame → world).
@@ -519,9 +520,9 @@ class Registrar:
         out = np.full((2, 3), np.nan)
         for i, side in enumerate(("L", "R")):
             if rel and rel.get(side) is not None:
-                out[i] = ET.apply(T_head, np.asarray(rel[side])[None])[0]
+                out[i] = apply_T(T_head, np.asarray(rel[side])[None])[0]
             elif side in self.tpl.eyes and "centre" in self.tpl.eyes[side]:
-                out[i] = ET.apply(T_head, np.asarray(self.tpl.eyes[side]["centre"])[None])[0]
+                out[i] = apply_T(T_head, np.asarray(self.tpl.eyes[side]["centre"])[None])[0]
         return out
 
     # ------------------------------------------------------------------ one expression
@@ -631,8 +632,8 @@ class Registrar:
                            "initial estimate = neutral (rigidly aligned to the known points if ≥ 3)")
             pred = N.vertices.copy()
             if usable.sum() >= 3:
-                Tr = ET.rigid_from_points(N.vertices[coarse[usable]], cN[usable])
-                pred = ET.apply(Tr, pred)
+                Tr = rigid_from_points(N.vertices[coarse[usable]], cN[usable])
+                pred = apply_T(Tr, pred)
             return pred, np.zeros(len(pred), int), [self.neutral], o.radius_px
         cn = N.vertices[coarse]
         D = np.stack([deformation_distances(cn, self.registered[r].vertices[coarse], cN, self.coarse_nbhds)
@@ -724,7 +725,7 @@ class Registrar:
                 if d is None:
                     continue
                 depth = ET.eye_depth(self.tpl.eyes.get(side, {}))
-                est[side].append(ET.apply(Tinv, (c3 - depth * d)[None])[0])
+                est[side].append(apply_T(Tinv, (c3 - depth * d)[None])[0])
                 used.append(f"{name}:{side}")
         rel = {}
         for side, v in est.items():
@@ -782,8 +783,8 @@ def order_expressions(reg: Registrar, todo: list[str]) -> list[str]:
         m = np.isfinite(pts[a]).all(1) & np.isfinite(pts[b]).all(1)
         if m.sum() < 3:
             return np.inf
-        T = ET.rigid_from_points(pts[a][m], pts[b][m])
-        return float(np.sqrt(np.mean(np.sum((ET.apply(T, pts[a][m]) - pts[b][m]) ** 2, 1))))
+        T = rigid_from_points(pts[a][m], pts[b][m])
+        return float(np.sqrt(np.mean(np.sum((apply_T(T, pts[a][m]) - pts[b][m]) ** 2, 1))))
 
     done = list(reg.registered) or [reg.neutral]
     order, left = [], [n for n in todo if n not in done]

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..geometry.rigid import apply
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
 from .jitgeom import CAM_PARAMS, bilinear_taps, camera_params, project
@@ -127,10 +128,6 @@ def part_transforms(template: dict, eye_centres: np.ndarray, teeth: np.ndarray, 
     if "teeth_upper" in out:
         out["mouth_interior"] = out["teeth_upper"]  # rigid with the skull
     return out
-
-
-def apply(T: np.ndarray, P: np.ndarray) -> np.ndarray:
-    return P @ T[:3, :3].T + T[:3, 3]
 
 
 def remove_specular_peaks(rf: np.ndarray, neighbours: list[np.ndarray], factor: float = 1.6) -> np.ndarray:

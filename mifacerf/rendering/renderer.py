@@ -31,7 +31,8 @@ from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
 from ..geometry.meshscene import MeshScene
-from .parts import PARTS, CombinedScene, PartFrame, apply, part_meshes, part_transforms, frame_reference, margin_ids
+from ..geometry.rigid import apply
+from .parts import PARTS, CombinedScene, PartFrame, part_meshes, part_transforms, frame_reference, margin_ids
 from .compression import lit_texels_pca
 from .relight import lit_texels, to_device_f16
 

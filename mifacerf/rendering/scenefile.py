@@ -76,7 +76,8 @@ def load_scene_file(xml_path, params: dict | None = None):
     write_target_mesh(folder / "face.ply", vertices, face.model.triangles)
     values["face_mesh"] = str(folder / "face.ply")
     # eyes, teeth, mouth interior, posed for the target (a part the model lacks: a speck far away)
-    from .parts import PARTS, apply, part_meshes
+    from ..geometry.rigid import apply
+    from .parts import PARTS, part_meshes
 
     parts = face.parts(mesh=vertices) if target else face.parts(values.get("expression") or face.model.neutral)
     meshes = part_meshes(face.model.template)

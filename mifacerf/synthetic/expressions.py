@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..geometry.rigid import apply
 from . import head as H
 
 
@@ -146,10 +147,6 @@ def affine(R, pivot):
     T[:3, :3] = R
     T[:3, 3] = pivot - R @ pivot
     return T
-
-
-def apply(T, P):
-    return P @ T[:3, :3].T + T[:3, 3]
 
 
 # --------------------------------------------------------------------------------------------

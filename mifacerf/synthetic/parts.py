@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.rigid import apply
 from . import head as H
-from .expressions import apply
 
 # --------------------------------------------------------------------------------------------
 # eyeball

@@ -35,7 +35,8 @@ from . import cache
 from . import head as H
 from . import parts as PT
 from .dots import DOT_RADIUS, choose_dots
-from .expressions import CONTROL_INDEX, CONTROL_NAMES, CONTROLS, SkinRig, apply, default_params
+from ..geometry.rigid import apply
+from .expressions import CONTROL_INDEX, CONTROL_NAMES, CONTROLS, SkinRig, default_params
 from .presets import Expression, presets as _presets
 from .textures import SkinTextures, build_atlas, rasterize
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera
+from ..geometry.rigid import apply as apply_T
 from ..registration import eyes_teeth as ET
 from ..registration.contours import relax_margin
 from ..registration.morph import mls_affine
@@ -132,7 +133,7 @@ def eye_tracks(head: np.ndarray, centres_head: dict, keyed: list[int], rotoscope
             iris = ET.iris_centre(cams, views)
             if iris is None:
                 continue
-            centre = ET.apply(head[f], c_head[None])[0]
+            centre = apply_T(head[f], c_head[None])[0]
             g_world = iris - centre
             keys[f] = head[f, :3, :3].T @ (g_world / np.linalg.norm(g_world))
         kf = sorted(keys)

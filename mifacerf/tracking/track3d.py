@@ -32,9 +32,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..camera import Camera
-from ..registration.eyes_teeth import apply as apply_T, robust_rigid
 from ..registration.morph import mls_affine
 from ..registration.snap import dot_graph
+from ..geometry.rigid import apply as apply_T, robust_rigid
 from ..geometry.triangulate import triangulate
 from ..registration.visibility import Visibility
 from .track2d import Detector, local_maxima, resolve_conflicts, search
