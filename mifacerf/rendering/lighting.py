@@ -9,6 +9,9 @@ environment rotated by R::
 
     L_l(R) = ∫_{cell l} E(Rᵀ ω) dω          (cell l: light l's spherical-Voronoi cell)
 
+(the default light basis rule, ``voronoi``; ``method="hat"`` weights ω by light l's Delaunay
+hat instead, :data:`mifacerf.environment.LIGHT_BASIS_METHODS`).
+
 :class:`RotatedLightBasis` evaluates this for many rotations at once with a
 coarse quadrature of the sphere (a lat-long grid with exact solid angles, each
 sample in its nearest light's cell) on a pre-filtered copy of the environment
@@ -36,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..jitarrays import to_jit
-from ..environment import Environment, light_basis, sphere_quadrature
+from ..environment import DEFAULT_LIGHT_BASIS_METHOD, Environment, light_basis, light_shares, sphere_quadrature
 from ..variant import ensure_variant
 
 
@@ -74,23 +77,29 @@ class RotatedLightBasis:
     """Light-stage weights of one environment under many rotations.
 
     ``directions`` (L, 3): light directions (world). ``n_theta``: rows of the
-    quadrature grid (``2 n_theta`` columns).
+    quadrature grid (``2 n_theta`` columns). ``method``: the light basis rule
+    (:data:`mifacerf.environment.LIGHT_BASIS_METHODS`; default ``voronoi``, the cells above), used by
+    the coarse quadrature and the exact identity alike.
     """
 
     def __init__(self, env: Environment, directions: np.ndarray, n_theta: int = 96,
-                 grid_step_deg: float = 3.0, grid_radius_deg: float = 45.0):
-        from scipy.spatial import cKDTree
+                 grid_step_deg: float = 3.0, grid_radius_deg: float = 45.0,
+                 method: str = DEFAULT_LIGHT_BASIS_METHOD):
         import drjit as dr
 
         mi = ensure_variant()
         self.env = env
+        self.method = method
         self.directions = np.asarray(directions, np.float64)
         self.n_lights = len(self.directions)
         qd, qw = sphere_quadrature(n_theta)
-        _, cell = cKDTree(self.directions).query(qd)
+        lights, shares = light_shares(qd, self.directions, method)
+        # one quadrature entry per (sample, light it shares in), grouped by light
+        k = lights.shape[1]
+        cell = lights.reshape(-1)
         order = np.argsort(cell, kind="stable")
-        self.q_dirs = qd[order]
-        self.q_weights = qw[order]
+        self.q_dirs = np.repeat(qd, k, axis=0)[order]
+        self.q_weights = (np.repeat(qw, k) * shares.reshape(-1))[order]
         self.q_cell = cell[order]
         self.cell_start = np.searchsorted(self.q_cell, np.arange(self.n_lights))
         empty = np.setdiff1d(np.arange(self.n_lights), self.q_cell)
@@ -109,7 +118,7 @@ class RotatedLightBasis:
         self._q = to_jit(mi.Vector3f, self.q_dirs.T)
         self._dr = dr
         self._mi = mi
-        self.identity = light_basis(env, self.directions, n_theta=max(256, 4 * n_theta))
+        self.identity = light_basis(env, self.directions, n_theta=max(256, 4 * n_theta), method=method)
         self._q_identity = self._evaluate(np.eye(3)[None])[0]
         self.grid_step = np.radians(grid_step_deg)
         self.grid_n = int(round(grid_radius_deg / grid_step_deg))

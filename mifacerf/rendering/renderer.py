@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Camera
-from ..environment import Environment
+from ..environment import DEFAULT_LIGHT_BASIS_METHOD, LIGHT_BASIS_METHODS, Environment
+from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
 from ..variant import ensure_variant
 from .chunks import FramePlan, plan_frame
@@ -58,11 +59,14 @@ class Renderer:
     """Renders a :class:`~.model.Model` with the exact environment-lit path.
 
     ``depth_tolerance`` (m): how far behind a field's seen surface a point may lie and
-    still count as visible in that field.
+    still count as visible in that field. ``basis``: the environment → light-stage rule, a
+    :data:`mifacerf.environment.LIGHT_BASIS_METHODS` name (``voronoi``).
     """
 
     def __init__(self, model, depth_tolerance: float = 0.004, method: str = "exact", rank: int = 8,
-                 lights: np.ndarray | None = None, light_epsilon: float = 1e-4, cache_frames: bool = True):
+                 lights: np.ndarray | None = None, light_epsilon: float = 1e-4, cache_frames: bool = True,
+                 basis: str = DEFAULT_LIGHT_BASIS_METHOD):
+        lookup(LIGHT_BASIS_METHODS, basis, "light basis")
         if method not in ("exact", "pca"):
             raise ValueError(f"unknown render method {method!r}; choose 'exact' or 'pca'")
         if lights is not None and method != "exact":
@@ -71,6 +75,7 @@ class Renderer:
         self.depth_tolerance = depth_tolerance
         self.method = method
         self.rank = rank
+        self.basis = basis
         # a subset of the light stage (benchmarks of light count): only these lights' data are used,
         # each standing for its spherical-Voronoi cell among the subset
         self.lights = None if lights is None else np.asarray(lights, np.int64)
@@ -92,7 +97,7 @@ class Renderer:
     def light_basis(self, env: Environment) -> RotatedLightBasis:
         key = id(env)
         if key not in self._bases or self._bases[key][0] is not env:
-            self._bases[key] = (env, RotatedLightBasis(env, self.light_directions))
+            self._bases[key] = (env, RotatedLightBasis(env, self.light_directions, method=self.basis))
         return self._bases[key][1]
 
     def _device_pca(self, s: int, c: int):
