@@ -70,11 +70,11 @@ def stage_register(cap: Path) -> Path:
     return register_capture(cap)
 
 
-def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,)) -> Path:
+def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,), method: str | None = None) -> Path:
     from tqdm.auto import tqdm
 
     from .rendering.build import build_model
-    from .rendering.compression import compress_model
+    from .rendering.compression import DEFAULT_COMPRESS_METHOD, compress_model
     from .rendering.model import Model
 
     model = out / "model"
@@ -82,9 +82,11 @@ def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,)) -> Path:
     if not ((model / "model.json").exists() and (model / "model.json").stat().st_mtime > stamp):
         build_model(cap, model, reg, overwrite=True, progress=lambda j: tqdm(j, desc="build", unit="field"))
     m = Model(model)
+    method = method or DEFAULT_COMPRESS_METHOD   # a COMPRESSION_METHODS name that compresses
     for k in ranks:
-        if k not in m.meta.get("compressed", {}).get("pca", []):
-            compress_model(m, k, progress=lambda j: tqdm(j, desc=f"compress pca{k}", unit="field"))
+        if k not in m.meta.get("compressed", {}).get(method, []):
+            compress_model(m, k, progress=lambda j: tqdm(j, desc=f"compress {method}{k}", unit="field"),
+                           method=method)
     return model
 
 

@@ -26,6 +26,12 @@ same Dr.Jit kernel as the Python API.
        (written by :mod:`mifacerf.rendering.scenefile`) are shaded as §6.3's eyes and teeth
    * - environment
      - string — optional generated name or lat-long file; default: the scene's infinite emitter
+   * - method, rank
+     - string, integer — how fields are stored and lit, a ``COMPRESSION_METHODS`` name
+       (:mod:`mifacerf.rendering.compression`; default ``exact``; ``pca`` with ``rank`` coefficients)
+   * - light_basis
+     - string — the environment → light-stage rule, a ``LIGHT_BASIS_METHODS`` name
+       (:mod:`mifacerf.environment`; default ``voronoi``, or ``hat``)
    * - (nested)
      - integrator — for everything but the face (default ``path``, max_depth 2)
 
@@ -70,6 +76,12 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         if "model" not in props:
             raise ValueError("facerf: the 'model' parameter (a model folder) is required")
         self.face = load_model(props["model"])
+        chosen = {k: props[p] for k, p in (("method", "method"), ("rank", "rank"), ("basis", "light_basis"))
+                  if p in props}
+        if chosen:   # methods by name (defaults: load_model's renderer)
+            from mifacerf.rendering.renderer import Renderer
+
+            self.face.renderer = Renderer(self.face.model, **chosen)
         self.expression = props.get("expression", None)
         self.target_path = props["target"] if "target" in props else None
         self.face_id = props["face"] if "face" in props else "face"

@@ -4,7 +4,8 @@ Configurations (all in one run; times are ratios to the dense reference):
 
 * ``dense``   — the straightforward NumPy reference: every light of every field (:mod:`.dense_reference`);
 * ``exact``   — the Dr.Jit exact path (render chunks, lit textures; :mod:`mifacerf.rendering.renderer`);
-* ``pca<K>``  — the compressed path with K coefficients per texel (:mod:`mifacerf.rendering.compression`);
+* ``pca<K>``  — the compressed path with K coefficients per texel (:mod:`mifacerf.rendering.compression`;
+  ``<method><K>`` for every compressed method the model holds, by its name in ``COMPRESSION_METHODS``);
 * ``exact@<size>`` — the exact path at another image size;
 * ``lights/<n>``   — the exact path with a subset of the light stage (every n-th arm position and strobe).
 
@@ -39,9 +40,19 @@ def frames(model, n: int, seed: int, size: int):
 
 
 def configs(model_meta: dict, quick: bool = False) -> list[str]:
-    ranks = model_meta.get("compressed", {}).get("pca", [])
-    out = ["dense", "exact"] + [f"pca{k}" for k in ranks] + ["exact@128", "lights/2"]
-    return out if not quick else ["dense", "exact"] + [f"pca{k}" for k in ranks[:1]]
+    compressed = [f"{method}{k}" for method, ranks in model_meta.get("compressed", {}).items() for k in ranks]
+    out = ["dense", "exact"] + compressed + ["exact@128", "lights/2"]
+    return out if not quick else ["dense", "exact"] + compressed[:1]
+
+
+def compressed_config(config: str) -> tuple[str, int] | None:
+    """``"<method><rank>"`` (``pca8``) → (method, rank) for a compression method that writes files, else None."""
+    import re
+
+    from ..rendering.compression import compressing_methods
+
+    m = re.fullmatch(r"([a-z_]+?)(\d+)", config)
+    return (m[1], int(m[2])) if m and m[1] in compressing_methods() else None
 
 
 def vm_hwm() -> int:
@@ -69,8 +80,9 @@ def worker(job_path: str, config: str) -> None:
     size = job["size"]
     if config.startswith("exact@"):
         size = int(config.split("@")[1])
-    if config.startswith("pca"):
-        face.renderer = Renderer(face.model, method="pca", rank=int(config[3:]))
+    compressed = compressed_config(config)
+    if compressed:
+        face.renderer = Renderer(face.model, method=compressed[0], rank=compressed[1])
     elif config.startswith("lights/"):
         step = int(config.split("/")[1])
         n_str = job["n_strobes"]
@@ -99,8 +111,9 @@ def worker(job_path: str, config: str) -> None:
 
 def disk_bytes(model_root: Path, config: str) -> int:
     fields = model_root / "fields"
-    if config.startswith("pca"):
-        pats = [f"*.pca{config[3:]}.npz", "*.texels.npz"]
+    compressed = compressed_config(config)
+    if compressed:
+        pats = [f"*.{compressed[0]}{compressed[1]}.npz", "*.texels.npz"]
     else:
         pats = ["*.rf.npy", "*.texels.npz"]
     total = sum(p.stat().st_size for pat in pats for p in fields.rglob(pat) if ".parts" not in p.name)

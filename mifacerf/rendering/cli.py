@@ -5,6 +5,8 @@ from pathlib import Path
 
 import click
 
+from .compression import DEFAULT_COMPRESS_METHOD, compressing_methods
+
 
 @click.command("build")
 @click.argument("capture", type=click.Path(exists=True, file_okay=False))
@@ -49,9 +51,11 @@ def render_cmd(scene_or_model, output, defines):
 
 @click.command("compress")
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
+@click.option("--method", type=click.Choice(compressing_methods()), default=DEFAULT_COMPRESS_METHOD, show_default=True,
+              help="Compression method (mifacerf.rendering.compression.COMPRESSION_METHODS).")
 @click.option("--rank", type=int, multiple=True, default=(8,), show_default=True,
-              help="PCA coefficients per texel (repeat for several).")
-def compress_cmd(model, rank):
+              help="Coefficients per texel (repeat for several).")
+def compress_cmd(model, method, rank):
     """Add PCA-compressed versions of every reflectance field to a model."""
     from tqdm.auto import tqdm
 
@@ -59,7 +63,8 @@ def compress_cmd(model, rank):
     from .model import Model
 
     m = Model(model)
-    info = compress_model(m, list(rank), progress=lambda jobs: tqdm(jobs, desc="compress", unit="field"))
+    info = compress_model(m, list(rank), progress=lambda jobs: tqdm(jobs, desc="compress", unit="field"),
+                          method=method)
     sizes = info["bytes"] if isinstance(info["bytes"], dict) else {rank[0]: info["bytes"]}
     for k, b in sizes.items():
         click.echo(f"rank {k}: {info['fields']} fields, {b / 1e6:.1f} MB")

@@ -1,5 +1,12 @@
 """Compressed reflectance fields (the paper's future work, §8): few coefficients per texel.
 
+The ways a renderer can store and light a field are chosen by name from
+:data:`COMPRESSION_METHODS` (:func:`compression_method`; the pattern of :mod:`mifacerf.methods`):
+``exact`` (the default: the stored field itself, L terms per texel, :mod:`.relight`) and ``pca``.
+Adding one is a :class:`CompressionMethod` (how to compress, load and light a field) plus one
+registry line; ``mifacerf compress --method``, ``Renderer(method=...)``, ``mifacerf bench`` (its
+``<method><rank>`` configurations) and the demo take it by that name.
+
 Method ``pca`` (per field): every texel's reflectance function, the 3L-vector
 ``F(x)[l, c]``, is approximated by a mean plus ``rank`` principal components of that
 field (an SVD of the N × 3L texel matrix)::
@@ -12,13 +19,16 @@ and ``β_v[k, c] = Σ_l B[k,l,c] L_v[l,c]``; a texel's lit colour is then
 ``Σ_i ĉ_i (m_{v_i} + Σ_k C[x,k] β_{v_i}[k])`` — ``rank`` terms per texel instead of L.
 The knob ``rank`` trades size and time for error (measured by ``mifacerf bench``).
 
-Storage: ``fields/<expr>/<cam>.pca<rank>.npz`` with ``coeff`` (N, rank) float16,
-``basis`` (rank, L, 3) and ``mean`` (L, 3) float32, next to the exact field.
+Storage: ``fields/<expr>/<cam>.<method><rank>.npz`` (:func:`compressed_path`), for ``pca``
+with ``coeff`` (N, rank) float16, ``basis`` (rank, L, 3) and ``mean`` (L, 3) float32, next to the
+exact field; ``model.json`` lists the ranks written per method (``"compressed": {"pca": [8]}``).
 """
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -26,7 +36,8 @@ from ..capture_folder import write_json_atomic
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
 
-METHODS = ("pca",)
+#: the method :func:`compress_model` and ``mifacerf compress`` write unless told (see :data:`COMPRESSION_METHODS`)
+DEFAULT_COMPRESS_METHOD = "pca"
 
 
 def compress_field(rf: np.ndarray, rank: int) -> dict:
@@ -62,27 +73,33 @@ def reconstruct(comp: dict) -> np.ndarray:
     return (comp["mean"].reshape(1, -1) + c @ B).reshape(len(c), *comp["mean"].shape)
 
 
-def compressed_path(model_root, expression: str, camera: str, rank: int) -> Path:
-    return Path(model_root) / "fields" / expression / f"{camera}.pca{rank}.npz"
+def compressed_path(model_root, expression: str, camera: str, rank: int, method: str) -> Path:
+    """Where the ``<method><rank>`` version of field (expression, camera) lives in a model folder."""
+    return Path(model_root) / "fields" / expression / f"{camera}.{method}{rank}.npz"
 
 
-def compress_model(model, rank, progress=None) -> dict:
-    """Write the ``pca<rank>`` version of every field of a model (``rank``: an int or several, computed
-    from one decomposition per field); returns {"bytes": {rank: ...}, "fields": n}."""
+def compress_model(model, rank, progress=None, method: str = DEFAULT_COMPRESS_METHOD) -> dict:
+    """Write the ``<method><rank>`` version of every field of a model (``rank``: an int or several, computed
+    from one decomposition per field; ``method``: a :data:`COMPRESSION_METHODS` name that compresses);
+    returns {"bytes": {rank: ...}, "fields": n}."""
+    compress = compression_method(method).compress
+    if compress is None:
+        raise ValueError(f"the {method!r} method renders the stored field itself; there is nothing to compress "
+                         f"(choose one of {', '.join(compressing_methods())})")
     ranks = [int(rank)] if np.isscalar(rank) else [int(r) for r in rank]
     jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
     total = {r: 0 for r in ranks}
     for s, c in (progress(jobs) if progress else jobs):
         f = model.field(s, c)
-        for r, comp in compress_field_ranks(np.asarray(f.rf), ranks).items():
-            path = compressed_path(model.root, f.expression, f.camera, r)
+        for r, comp in compress(np.asarray(f.rf), ranks).items():
+            path = compressed_path(model.root, f.expression, f.camera, r, method)
             tmp = path.with_name(f".{path.stem}.tmp.npz")
             np.savez(tmp, **comp)
             os.replace(tmp, path)
             total[r] += path.stat().st_size
     meta = dict(model.meta)
-    done = sorted(set(meta.get("compressed", {}).get("pca", [])) | set(ranks))
-    meta["compressed"] = {**meta.get("compressed", {}), "pca": done}
+    done = sorted(set(meta.get("compressed", {}).get(method, [])) | set(ranks))
+    meta["compressed"] = {**meta.get("compressed", {}), method: done}
     write_json_atomic(Path(model.root) / "model.json", meta)
     model.meta = meta
     return {"bytes": total if len(ranks) > 1 else total[ranks[0]], "fields": len(jobs)}
@@ -127,3 +144,71 @@ def lit_texels_pca(coeff_device, rank: int, texels: np.ndarray, vertex_ids: np.n
     return np.stack([np.asarray(o) for o in out], axis=1)
 
 
+# ------------------------------------------------------------------ the methods by name
+def _load_exact(model, s: int, c: int, rank: int, lights):
+    from .relight import to_device_f16
+
+    rf = np.asarray(model.field(s, c).rf)
+    return to_device_f16(rf if lights is None else rf[:, lights])
+
+
+def _lit_exact(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
+    from .relight import lit_texels
+
+    return lit_texels(data, n_lights, texels, vertex_ids, coef, lighting, keep)
+
+
+def _load_pca(model, s: int, c: int, rank: int, lights):
+    from .relight import to_device_f16
+
+    comp = model.compressed_field(s, c, rank, "pca")
+    return comp, to_device_f16(comp["coeff"])
+
+
+def _lit_pca(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
+    comp, dev = data
+    if keep is not None:
+        comp = {"coeff": comp["coeff"], "mean": comp["mean"][keep], "basis": comp["basis"][:, keep]}
+    m_v = np.einsum("vlc,lc->vc", lighting, comp["mean"])
+    beta_v = np.einsum("vlc,klc->vkc", lighting, comp["basis"])
+    return lit_texels_pca(dev, comp["basis"].shape[0], texels, vertex_ids, coef, m_v, beta_v)
+
+
+@dataclass(frozen=True)
+class CompressionMethod:
+    """One way of storing and lighting a reflectance field (an entry of :data:`COMPRESSION_METHODS`).
+
+    * ``compress(rf (N, L, 3), ranks) -> {rank: {name: array}}``: the arrays written to
+      :func:`compressed_path` by :func:`compress_model`; None for the stored field itself;
+    * ``load(model, s, c, rank, lights) -> data``: field (source ``s``, camera ``c``) ready to light
+      (device arrays; ``lights`` a light subset or None);
+    * ``lit(data, n_lights, texels (N,), vertex_ids (N, 3), coef (N, 3), lighting (V, L, 3), keep) -> (N, 3)``:
+      the lit colour of ``texels`` under the per-vertex light-stage weights ``lighting`` (``keep``: the
+      lights kept, None for all);
+    * ``light_subsets``: whether ``load`` accepts a light subset.
+    """
+
+    compress: Callable | None
+    load: Callable
+    lit: Callable
+    light_subsets: bool = False
+
+
+#: how a renderer stores and lights a field: name → :class:`CompressionMethod`; the first is the default
+COMPRESSION_METHODS = {
+    "exact": CompressionMethod(None, _load_exact, _lit_exact, light_subsets=True),
+    "pca": CompressionMethod(compress_field_ranks, _load_pca, _lit_pca),
+}
+DEFAULT_COMPRESSION_METHOD = "exact"
+
+
+def compression_method(method: str = DEFAULT_COMPRESSION_METHOD) -> CompressionMethod:
+    """The :data:`COMPRESSION_METHODS` entry named ``method`` (ValueError listing the choices otherwise)."""
+    from ..methods import lookup
+
+    return lookup(COMPRESSION_METHODS, method, "compression")
+
+
+def compressing_methods() -> list[str]:
+    """The names of the methods that write a compressed copy (``mifacerf compress --method``)."""
+    return [name for name, m in COMPRESSION_METHODS.items() if m.compress is not None]

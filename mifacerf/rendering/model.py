@@ -180,19 +180,21 @@ class Model:
             total -= _nbytes(old)
         return f
 
-    def compressed_field(self, s: int, c: int, rank: int) -> dict:
-        """The ``pca<rank>`` version of a field: {coeff (N, K) f16, basis (K, L, 3), mean (L, 3)} (cached)."""
+    def compressed_field(self, s: int, c: int, rank: int, method: str) -> dict:
+        """The ``<method><rank>`` version of a field (:mod:`.compression`), its arrays by name (cached);
+        for ``pca``: {coeff (N, K) f16, basis (K, L, 3), mean (L, 3)}."""
         from .compression import compressed_path
 
-        key = ("pca", rank, s, c)
+        key = (method, rank, s, c)
         if key in self._fields:
             self._fields.move_to_end(key)
             return self._fields[key]
-        path = compressed_path(self.root, self.expressions[s], self.cameras[c].name, rank)
+        path = compressed_path(self.root, self.expressions[s], self.cameras[c].name, rank, method)
         if not path.exists():
-            raise ModelError(f"{path}: missing; compress the model first (mifacerf compress MODEL --rank {rank})")
+            raise ModelError(f"{path}: missing; compress the model first "
+                             f"(mifacerf compress MODEL --method {method} --rank {rank})")
         z = np.load(path)
-        comp = {k: z[k] for k in ("coeff", "basis", "mean")}
+        comp = {k: z[k] for k in z.files}
         self.loaded_fields.append((self.expressions[s], self.cameras[c].name))
         self._fields[key] = comp
         return comp

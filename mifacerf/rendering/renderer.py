@@ -34,8 +34,7 @@ from .lighting import RotatedLightBasis
 from ..geometry.meshscene import MeshScene
 from ..geometry.rigid import apply
 from .parts import PARTS, CombinedScene, PartFrame, part_meshes, part_transforms, frame_reference, margin_ids
-from .compression import lit_texels_pca
-from .relight import lit_texels, to_device_f16
+from .compression import COMPRESSION_METHODS, DEFAULT_COMPRESSION_METHOD, compression_method
 
 
 @dataclass
@@ -59,18 +58,20 @@ class Renderer:
     """Renders a :class:`~.model.Model` with the exact environment-lit path.
 
     ``depth_tolerance`` (m): how far behind a field's seen surface a point may lie and
-    still count as visible in that field. ``basis``: the environment → light-stage rule, a
-    :data:`mifacerf.environment.LIGHT_BASIS_METHODS` name (``voronoi``).
+    still count as visible in that field. ``method``: how fields are stored and lit, a
+    :data:`.compression.COMPRESSION_METHODS` name (``exact``, or ``pca`` with ``rank`` coefficients);
+    ``basis``: the environment → light-stage rule, a :data:`mifacerf.environment.LIGHT_BASIS_METHODS`
+    name (``voronoi``).
     """
 
-    def __init__(self, model, depth_tolerance: float = 0.004, method: str = "exact", rank: int = 8,
-                 lights: np.ndarray | None = None, light_epsilon: float = 1e-4, cache_frames: bool = True,
-                 basis: str = DEFAULT_LIGHT_BASIS_METHOD):
+    def __init__(self, model, depth_tolerance: float = 0.004, method: str = DEFAULT_COMPRESSION_METHOD,
+                 rank: int = 8, lights: np.ndarray | None = None, light_epsilon: float = 1e-4,
+                 cache_frames: bool = True, basis: str = DEFAULT_LIGHT_BASIS_METHOD):
+        self.compression = compression_method(method)
         lookup(LIGHT_BASIS_METHODS, basis, "light basis")
-        if method not in ("exact", "pca"):
-            raise ValueError(f"unknown render method {method!r}; choose 'exact' or 'pca'")
-        if lights is not None and method != "exact":
-            raise ValueError("a light subset is supported by the exact method only")
+        if lights is not None and not self.compression.light_subsets:
+            subsets = [n for n, m in COMPRESSION_METHODS.items() if m.light_subsets]
+            raise ValueError(f"a light subset is supported by the {' and '.join(subsets)} method only")
         self.model = model
         self.depth_tolerance = depth_tolerance
         self.method = method
@@ -100,18 +101,11 @@ class Renderer:
             self._bases[key] = (env, RotatedLightBasis(env, self.light_directions, method=self.basis))
         return self._bases[key][1]
 
-    def _device_pca(self, s: int, c: int):
-        key = ("pca", self.rank, s, c)
-        if key not in self._device:
-            comp = self.model.compressed_field(s, c, self.rank)
-            self._device[key] = (comp, to_device_f16(comp["coeff"]))
-        return self._device[key]
-
-    def _device_rf(self, s: int, c: int, f):
+    def _device_field(self, s: int, c: int):
+        """Field (s, c) loaded for lighting by the renderer's method (cached)."""
         key = (s, c)
         if key not in self._device:
-            rf = np.asarray(f.rf) if self.lights is None else np.asarray(f.rf)[:, self.lights]
-            self._device[key] = to_device_f16(rf)
+            self._device[key] = self.compression.load(self.model, s, c, self.rank, self.lights)
         return self._device[key]
 
     # ----------------------------------------------------------------- frame
@@ -143,7 +137,7 @@ class Renderer:
             f = model.field(s, c)  # the texel map (the memory-mapped exact data is not read for 'pca')
             if (f.expression, f.camera) not in stats.fields_loaded:
                 stats.fields_loaded.append((f.expression, f.camera))
-            data = self._device_rf(s, c, f) if self.method == "exact" else self._device_pca(s, c)
+            data = self._device_field(s, c)
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
             fv = model.triangles[f.tri]
@@ -151,15 +145,7 @@ class Renderer:
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
             coef = wt[active] / wsum_t[active, None]
-            if self.method == "exact":
-                lit = lit_texels(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
-            else:
-                comp, dev = data
-                if keep is not None:
-                    comp = {"coeff": comp["coeff"], "mean": comp["mean"][keep], "basis": comp["basis"][:, keep]}
-                m_v = np.einsum("vlc,lc->vc", lighting[s], comp["mean"])
-                beta_v = np.einsum("vlc,klc->vkc", lighting[s], comp["basis"])
-                lit = lit_texels_pca(dev, comp["basis"].shape[0], active, fv[active], coef, m_v, beta_v)
+            lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
             cam = model.cameras[c]
             img = np.zeros((cam.height, cam.width, 4), np.float32)
             px = f.pixels[active]

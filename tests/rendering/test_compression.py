@@ -55,3 +55,38 @@ def test_compressed_render_converges_to_exact(tmp_path_factory, mi):
     low, mid, high = psnr(2), psnr(8), psnr(30)
     assert low < mid < high  # more coefficients, less error (rank 3L = 90 would be exact)
     assert high > 40  # measured 47.6 dB
+
+
+def test_compressed_fields_by_name(toy_model, tmp_path):
+    """Every method of COMPRESSION_METHODS through its name: the compressing ones write files under it
+    (into a copy of the toy model), and the renderer lights each by it, close to the exact path."""
+    import shutil
+
+    from mifacerf.rendering import compression as C
+    from mifacerf.rendering.model import Model
+    from mifacerf.rendering.renderer import Renderer
+
+    shutil.copytree(toy_model.root, tmp_path / "model")
+    toy_model = Model(tmp_path / "model")
+
+    env = E.generated("gradient", 16)
+    W = np.zeros((toy_model.n_vertices, len(toy_model.expressions)))
+    W[:, 0] = 1
+    exact = Renderer(toy_model).render(toy_model.vertices[0], W, toy_model.cameras[0], env, spp=1)
+    for method in C.COMPRESSION_METHODS:
+        if C.COMPRESSION_METHODS[method].compress is not None:
+            C.compress_model(toy_model, 30, method=method)
+            assert 30 in toy_model.meta["compressed"][method]
+            assert C.compressed_path(toy_model.root, toy_model.expressions[0], toy_model.cameras[0].name, 30,
+                                     method).exists()
+        img = Renderer(toy_model, method=method, rank=30).render(toy_model.vertices[0], W, toy_model.cameras[0],
+                                                                 env, spp=1)
+        cov = exact[..., 3] > 0.999
+        err = ((img - exact)[..., :3][cov] ** 2).mean()
+        assert err == 0 or 10 * np.log10(exact[..., :3][cov].max() ** 2 / err) > 35.0, method
+    with pytest.raises(ValueError, match="unknown compression method"):
+        Renderer(toy_model, method="svd")
+    with pytest.raises(ValueError, match="unknown light basis method"):
+        Renderer(toy_model, basis="sh")
+    with pytest.raises(ValueError, match="light subset"):
+        Renderer(toy_model, method="pca", lights=[0, 1])

@@ -158,3 +158,16 @@ def test_bsdf_under_a_directional_light_matches_the_olat_image(toy_model, mi, tm
     assert mask.sum() > 100
     psnr = 10 * np.log10(ref[mask].max() ** 2 / ((img - ref)[mask] ** 2).mean())
     assert psnr > 27.0, psnr  # measured ~32 dB on this toy (coarse template at the terminator)
+
+
+def test_integrator_takes_methods_by_name(toy_model, mi):
+    """The facerf integrator's method / rank / light_basis choose the renderer's registries' entries by name."""
+    import mifacerf.plugins  # noqa: F401  (registers facerf)
+    base = {"type": "facerf", "model": str(toy_model)}
+    assert mi.load_dict(base).face.renderer.basis == "voronoi"
+    chosen = mi.load_dict({**base, "light_basis": "hat"}).face.renderer
+    assert (chosen.basis, chosen.method) == ("hat", "exact")
+    with pytest.raises(Exception, match="unknown light basis method 'sh'; choose one of voronoi, hat"):
+        mi.load_dict({**base, "light_basis": "sh"})
+    with pytest.raises(Exception, match="unknown compression method 'svd'; choose one of exact, pca"):
+        mi.load_dict({**base, "method": "svd", "rank": 4})
