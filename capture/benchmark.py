@@ -187,7 +187,7 @@ def geometry(preset, resolution, views, spp, seed, model):
 def response(preset, resolution, seed):
     """Render charts through realistic sensors, calibrate both ways, compare with the truth."""
     from mifacerf.capture.calibration.debevec1997 import curve_error
-    from mifacerf.capture.calibration.radiometric import calibrate_radiometry
+    from mifacerf.capture.calibration.radiometric import RESPONSE_METHODS, calibrate_radiometry
     from mifacerf.capture.simulation.cameras import SensorModel
     from mifacerf.capture.simulation.charts import write_chart_dataset
     from mifacerf.rig import preset as get_preset
@@ -199,7 +199,7 @@ def response(preset, resolution, seed):
                                                                  "read noise 0.002, colour crosstalk)"}
     with tempfile.TemporaryDirectory() as tmp:
         write_chart_dataset(tmp, rig, sensors)
-        for method in ("grey_olat", "exposures"):
+        for method in RESPONSE_METHODS:
             res = calibrate_radiometry(tmp, method=method)
             rows = {}
             for c, r in res.items():

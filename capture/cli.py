@@ -11,6 +11,8 @@ from pathlib import Path
 
 import click
 
+from .calibration.radiometric import DEFAULT_RESPONSE_METHOD, RESPONSE_METHODS
+
 EXIT_INTERRUPTED = 3
 
 
@@ -348,7 +350,7 @@ def render_charts_cmd(out, preset, resolution, sensor, seed):
 @calibrate_group.command("response")
 @click.argument("charts", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Calibration JSON (default CHARTS/radiometry.json).")
-@click.option("--method", type=click.Choice(["grey_olat", "exposures"]), default="grey_olat", show_default=True,
+@click.option("--method", type=click.Choice(list(RESPONSE_METHODS)), default=DEFAULT_RESPONSE_METHOD, show_default=True,
               help="Response from the grey chart under every light, or at several exposures.")
 @click.option("--truth", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Ground truth (simulated charts' truth.json): report the response-curve error.")

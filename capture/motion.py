@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..methods import lookup
+
 
 def representative_lights(n_positions: int, n_strobes: int, k: int = 32, lights=None) -> np.ndarray:
     """About ``k`` light indices spread over the stage: every arm position, strobes staggered.
@@ -94,7 +96,7 @@ def coherence(frames) -> float:
     return float(np.linalg.norm(sum(laps)) / den) if den > 0 else 0.0
 
 
-#: name -> f(sum image, frames) -> score (higher = sharper)
+#: name -> f(sum image, frames) -> score (higher = sharper); the first is the default
 SHARPNESS_METHODS = {
     "laplacian": lambda total, frames: laplacian_sharpness(total),
     "highfreq": lambda total, frames: highfreq_sharpness(total),
@@ -102,12 +104,12 @@ SHARPNESS_METHODS = {
 }
 
 
-def take_score(frames, method: str = "laplacian") -> float:
-    """Sharpness of the sum of ``frames`` (K, H, W, 3) by ``method``."""
-    try:
-        fn = SHARPNESS_METHODS[method]
-    except KeyError:
-        raise ValueError(f"unknown sharpness method {method!r}; choose one of {', '.join(SHARPNESS_METHODS)}") from None
+DEFAULT_SHARPNESS_METHOD = "laplacian"
+
+
+def take_score(frames, method: str = DEFAULT_SHARPNESS_METHOD) -> float:
+    """Sharpness of the sum of ``frames`` (K, H, W, 3) by ``method`` (:data:`SHARPNESS_METHODS`)."""
+    fn = lookup(SHARPNESS_METHODS, method, "sharpness")
     frames = np.asarray(frames, np.float32)
     if frames.ndim != 4 or frames.shape[0] == 0:
         raise ValueError(f"expected frames (K, H, W, C) with K >= 1, got shape {frames.shape}")
@@ -142,12 +144,11 @@ class MotionCheck:
     ``threshold`` on score / reference."""
 
     sample: int = 32
-    method: str = "laplacian"
+    method: str = DEFAULT_SHARPNESS_METHOD
     threshold: float = 0.7
 
     def __post_init__(self):
-        if self.method not in SHARPNESS_METHODS:
-            raise ValueError(f"unknown sharpness method {self.method!r}")
+        lookup(SHARPNESS_METHODS, self.method, "sharpness")
         if not 0 < self.threshold <= 1:
             raise ValueError(f"threshold must lie in (0, 1], got {self.threshold}")
 

@@ -31,7 +31,6 @@ from .charts import ChartLayout, colorchecker_reference, grey_reference, patch_m
 from .colour_correction import delta_e2000, factor_exposure, fit_colour_matrix
 from .debevec1997 import ResponseError, recover_response
 
-RESPONSE_METHODS = ("grey_olat", "exposures")
 
 
 class RadiometryError(ValueError):
@@ -81,23 +80,42 @@ def _measure(root: Path, desc: dict, set_name: str, camera: str) -> tuple[np.nda
     return np.asarray(out), s["images"]
 
 
-def calibrate_camera(root, camera: str, *, method: str = "grey_olat", n_knots: int = 33,
+def _grey_olat(root: Path, desc: dict, camera: str):
+    """Response data ``grey_olat``: the grey chart under every light (known patch reflectances)."""
+    _, grey = grey_reference()
+    z, _ = _measure(root, desc, "grey_olat", camera)              # (N lights, 6 patches, 3)
+    z = np.transpose(z, (0, 2, 1)).reshape(-1, z.shape[1])       # rows: (light, channel)
+    return z, np.log(grey), 1
+
+
+def _exposures(root: Path, desc: dict, camera: str):
+    """Response data ``exposures``: the grey chart at known exposure times (unknown patch radiance)."""
+    z, entries = _measure(root, desc, "grey_exposures", camera)  # (N exposures, 6, 3)
+    z = np.transpose(z, (1, 2, 0)).reshape(-1, z.shape[0])       # rows: (patch, channel), cols: exposures
+    return z, np.log([e["exposure"] for e in entries]), 1
+
+
+#: where the response curve's data come from: name → f(root, chart description, camera) →
+#: (pixel values z, log of the known factor, its axis) for :func:`.debevec1997.recover_response`;
+#: the first is the default
+RESPONSE_METHODS = {"grey_olat": _grey_olat, "exposures": _exposures}
+DEFAULT_RESPONSE_METHOD = "grey_olat"
+
+
+def response_data(root: Path, desc: dict, camera: str, method: str = DEFAULT_RESPONSE_METHOD):
+    """The response curve's data for ``camera`` by ``method`` (:data:`RESPONSE_METHODS`)."""
+    from ...methods import lookup
+
+    return lookup(RESPONSE_METHODS, method, "response")(root, desc, camera)
+
+
+def calibrate_camera(root, camera: str, *, method: str = DEFAULT_RESPONSE_METHOD, n_knots: int = 33,
                      smoothness: float = 1.0) -> CameraRadiometry:
     """Response curve, exposure and colour matrix of ``camera`` from the chart captures in ``root``."""
     root = Path(root)
     desc = _load(root)
     rig = Rig.from_dict(desc["rig"])
-    if method not in RESPONSE_METHODS:
-        raise ValueError(f"unknown response method {method!r}; choose one of {', '.join(RESPONSE_METHODS)}")
-    _, grey = grey_reference()
-    if method == "grey_olat":
-        z, _ = _measure(root, desc, "grey_olat", camera)              # (N lights, 6 patches, 3)
-        z = np.transpose(z, (0, 2, 1)).reshape(-1, z.shape[1])       # rows: (light, channel)
-        log_known, axis = np.log(grey), 1
-    else:
-        z, entries = _measure(root, desc, "grey_exposures", camera)  # (N exposures, 6, 3)
-        z = np.transpose(z, (1, 2, 0)).reshape(-1, z.shape[0])       # rows: (patch, channel), cols: exposures
-        log_known, axis = np.log([e["exposure"] for e in entries]), 1
+    z, log_known, axis = response_data(root, desc, camera, method)
     try:
         curve = recover_response(z, log_known, axis, n_knots=n_knots, smoothness=smoothness)
     except ResponseError as exc:
