@@ -143,12 +143,6 @@ def rot_z(a):
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
-def mirror_x(c):
-    c = np.array(c, float)
-    c[0] = -c[0]
-    return c
-
-
 def head_sdf(p: np.ndarray) -> np.ndarray:
     """Signed distance (approximately, metres; negative inside) of the rest head at points ``p``."""
     p = np.asarray(p, float)
