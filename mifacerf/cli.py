@@ -24,6 +24,7 @@ LAZY_COMMANDS = {
     "register": "mifacerf.registration.cli:register_cmd",
     "capture": "mifacerf.capture.cli:capture_cmd",
     "calibrate": "mifacerf.capture.cli:calibrate_group",
+    "studio": "mifacerf.studio.cli:studio_cmd",
 }
 
 
