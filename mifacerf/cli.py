@@ -1,8 +1,10 @@
 """The ``mifacerf`` command line.
 
 Commands live next to the code they drive and are imported only when used, so
-``mifacerf --help`` stays fast: :data:`LAZY_COMMANDS` maps a command name to
-``"module:attribute"``.
+``mifacerf --help`` stays fast (it imports neither Mitsuba nor any stage):
+:data:`LAZY_COMMANDS` maps a command name to ``"module:attribute"`` and the
+summary the command list shows (the first sentence of the command's help;
+``tests/test_package_root.py`` checks that they agree).
 """
 from __future__ import annotations
 
@@ -10,35 +12,69 @@ import importlib
 
 import click
 
+#: name → ("module:attribute", summary shown by ``mifacerf --help``)
 LAZY_COMMANDS = {
-    "synth": "mifacerf.synthetic.cli:synth_cmd",
-    "truth": "mifacerf.synthetic.cli:truth_cmd",
-    "build": "mifacerf.rendering.cli:build_cmd",
-    "render": "mifacerf.rendering.cli:render_cmd",
-    "compress": "mifacerf.rendering.cli:compress_cmd",
-    "bench": "mifacerf.evaluation.cli:bench_cmd",
-    "evaluate": "mifacerf.evaluation.cli:evaluate_group",
-    "demo": "mifacerf.demo:demo_cmd",
-    "track": "mifacerf.tracking.cli:track_cmd",
-    "drive": "mifacerf.tracking.cli:drive_cmd",
-    "register": "mifacerf.registration.cli:register_cmd",
-    "capture": "mifacerf.capture.cli:capture_cmd",
-    "calibrate": "mifacerf.capture.cli:calibrate_group",
-    "studio": "mifacerf.studio.cli:studio_cmd",
+    "synth": ("mifacerf.synthetic.cli:synth_cmd",
+              "Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."),
+    "truth": ("mifacerf.synthetic.cli:truth_cmd",
+              "Path-trace the synthetic subject of OUT (any expression, camera, environment) with alpha."),
+    "build": ("mifacerf.rendering.cli:build_cmd",
+              "Assemble the relightable morphable model from a registered capture."),
+    "render": ("mifacerf.rendering.cli:render_cmd",
+               "Render a scene file (scenes/*.xml) that uses mifacerf's plugins."),
+    "compress": ("mifacerf.rendering.cli:compress_cmd",
+                 "Add PCA-compressed versions of every reflectance field to a model."),
+    "bench": ("mifacerf.evaluation.cli:bench_cmd",
+              "Benchmark run time per frame against error: dense reference, exact path, compressed ranks."),
+    "evaluate": ("mifacerf.evaluation.cli:evaluate_group",
+                 "Compare a stage's output with the synthetic ground truth (evaluation only: no stage reads "
+                 "the truth)."),
+    "demo": ("mifacerf.demo:demo_cmd",
+             "Run the main job on the embedded synthetic subject: capture, registration, model, renders, "
+             "performance, metrics."),
+    "track": ("mifacerf.tracking.cli:track_cmd",
+              "Track the dots of a multi-view PERFORMANCE; write the per-frame target mesh (paper §6.4)."),
+    "drive": ("mifacerf.tracking.cli:drive_cmd",
+              "Drive MODEL with a TRACK: §5 weights per frame, relit renders, composites, a video (paper §7)."),
+    "register": ("mifacerf.registration.cli:register_cmd",
+                 "Register every expression of CAPTURE into the template (reads only CAPTURE: manifest, "
+                 "images, hand/)."),
+    "capture": ("mifacerf.capture.cli:capture_cmd",
+                "Run a light-stage capture session into the folder OUT (paper §2.1)."),
+    "calibrate": ("mifacerf.capture.cli:calibrate_group",
+                  "Geometric (Zhang) and radiometric (response, colour) calibration of the cameras (paper §2.1)."),
 }
 
 
+def load_command(name: str) -> click.Command:
+    """Import the module of lazy command ``name`` and return the command."""
+    module, attr = LAZY_COMMANDS[name][0].split(":")
+    return getattr(importlib.import_module(module), attr)
+
+
 class LazyGroup(click.Group):
-    """A click group whose sub-commands are imported on first use."""
+    """A click group whose sub-commands are imported on first use; its help lists them without importing."""
 
     def list_commands(self, ctx):
         return sorted(set(super().list_commands(ctx)) | set(LAZY_COMMANDS))
 
     def get_command(self, ctx, name):
         if name in LAZY_COMMANDS:
-            module, attr = LAZY_COMMANDS[name].split(":")
-            return getattr(importlib.import_module(module), attr)
+            return load_command(name)
         return super().get_command(ctx, name)
+
+    def format_commands(self, ctx, formatter):
+        """The command list, lazy commands by their :data:`LAZY_COMMANDS` summary (click's layout)."""
+        commands = []
+        for name in self.list_commands(ctx):
+            if name in LAZY_COMMANDS:
+                commands.append((name, click.Command(name, help=LAZY_COMMANDS[name][1])))
+            elif not self.commands[name].hidden:
+                commands.append((name, self.commands[name]))
+        if commands:
+            limit = formatter.width - 6 - max(len(name) for name, _ in commands)
+            with formatter.section("Commands"):
+                formatter.write_dl([(name, cmd.get_short_help_str(limit)) for name, cmd in commands])
 
 
 @click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})

@@ -9,14 +9,20 @@ fail while compiling kernels ("Cannot select: fminimum"). :func:`find_libllvm`
 looks for LLVM >= 16 and points Dr.Jit at it through ``DRJIT_LIBLLVM_PATH``
 before Mitsuba is imported; the README's set-up installs Debian's
 ``libllvm19`` when none is found.
+
+:func:`ensure_plugins` also registers mifacerf's Mitsuba plugins (``facerf``, ``facerf_bsdf``;
+:mod:`mifacerf.plugins`). No module outside the plugins imports Mitsuba at import time: the package
+root and the pure modules load without it (``docs/architecture.md``, "Mitsuba and the plugins").
 """
 from __future__ import annotations
 
 import glob
+import importlib
 import os
 import re
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
+PLUGINS_PACKAGE = "mifacerf.plugins"
 MIN_LLVM_MAJOR = 16
 
 _SEARCH_GLOBS = (
@@ -91,4 +97,17 @@ def ensure_variant():
         mi.set_variant(name)
     except Exception as exc:  # the backend failed to initialise (no GPU, no libLLVM, ...)
         raise VariantError(f"Mitsuba variant {name!r} could not be initialised: {exc}") from exc
+    return mi
+
+
+def ensure_plugins():
+    """Select the variant (:func:`ensure_variant`), register mifacerf's Mitsuba plugins, return ``mitsuba``.
+
+    Idempotent: the plugins register themselves (``mi.register_integrator("facerf", ...)``,
+    ``mi.register_bsdf("facerf_bsdf", ...)``) when :data:`PLUGINS_PACKAGE` is first imported, and
+    a module is imported once. The package is named here rather than imported: the plugins wrap
+    the renderer (they sit on the rendering floor), while this module is on the ground floor.
+    """
+    mi = ensure_variant()
+    importlib.import_module(PLUGINS_PACKAGE)
     return mi

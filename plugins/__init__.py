@@ -1,4 +1,9 @@
-"""mifacerf's Mitsuba plugins, registered by name when :mod:`mifacerf` is imported.
+"""mifacerf's Mitsuba plugins, registered by name when this package is imported.
+
+:func:`mifacerf.variant.ensure_plugins` imports it: the rendering entry points (``load_model``,
+the renderer, scene files) and ``import mifacerf`` in a program that already imported
+``mitsuba`` call it; :func:`mifacerf.register_plugins` does it on request. Installed as
+``mifacerf.plugins`` from the repository's top-level ``plugins/`` (pyproject's ``package-dir``).
 
 * ``facerf`` (integrator): the exact environment-lit render of a face model (:mod:`.facerf_integrator`).
 * ``facerf_bsdf`` (BSDF): the image-based material for Mitsuba's own emitters and integrators

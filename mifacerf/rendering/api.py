@@ -22,6 +22,7 @@ import numpy as np
 
 from ..camera import Camera, ring_camera
 from ..environment import Environment, resolve
+from ..variant import ensure_plugins
 from .model import Model
 from .renderer import Renderer, RenderStats
 
@@ -129,7 +130,8 @@ class FaceModel:
 
 
 def load_model(path, cache_bytes: int = 4 << 30) -> FaceModel:
-    """Open a model folder written by ``mifacerf build``."""
+    """Open a model folder written by ``mifacerf build`` (and register mifacerf's Mitsuba plugins)."""
+    ensure_plugins()
     return FaceModel(path, cache_bytes)
 
 

@@ -27,7 +27,7 @@ from ..camera import Camera
 from ..environment import DEFAULT_LIGHT_BASIS_METHOD, LIGHT_BASIS_METHODS, Environment
 from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
-from ..variant import ensure_variant
+from ..variant import ensure_plugins
 from .chunks import FramePlan, plan_frame
 from .frame import LitFrame
 from .lighting import RotatedLightBasis
@@ -230,7 +230,7 @@ class Renderer:
         (:func:`.parts.target_parts_from_weights` / :func:`.parts.target_parts_from_mesh`); None
         renders the skin only.
         """
-        mi = ensure_variant()
+        mi = ensure_plugins()  # a render registers the plugins too (an idempotent look-up)
         model = self.model
         stats = stats if stats is not None else RenderStats()
         key = None

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..imageio import write_exr, write_png
-from ..variant import ensure_variant
+from ..variant import ensure_plugins
 
 
 def write_target_mesh(path, vertices: np.ndarray, triangles: np.ndarray) -> Path:
@@ -61,7 +61,7 @@ def load_scene_file(xml_path, params: dict | None = None):
     """Load a scene file with its target mesh written; returns (scene, parameters used)."""
     from .api import load_model
 
-    mi = ensure_variant()
+    mi = ensure_plugins()  # the scene names the facerf plugins
     xml_path = Path(xml_path)
     values = {**scene_defaults(xml_path), **(params or {})}
     if "model" not in values:
@@ -111,7 +111,7 @@ def load_scene_file(xml_path, params: dict | None = None):
 
 def render_scene_file(xml_path, output, params: dict | None = None, spp: int | None = None) -> Path:
     """Render a scene file to ``output`` (.exr, plus a .png beside it)."""
-    mi = ensure_variant()
+    mi = ensure_plugins()
     scene, _ = load_scene_file(xml_path, params)
     img = np.asarray(mi.render(scene, spp=spp or 0), np.float32)
     output = Path(output)

@@ -9,8 +9,10 @@ from .toy import make_toy
 
 @pytest.fixture(scope="module")
 def toy_model(tmp_path_factory, mi):
+    import mifacerf
     from mifacerf.rendering.build import build_model
 
+    mifacerf.register_plugins()  # the tests below load facerf_bsdf by name, as a Mitsuba user does
     root = tmp_path_factory.mktemp("toyapi")
     cap, _ = make_toy(root, names=("neutral", "stretch"), size=40, n_pos=6, n_str=5)
     build_model(cap, root / "model")
