@@ -1,7 +1,7 @@
-"""Fixtures for the capture tests (helpers in capture_helpers.py)."""
+"""Fixtures of the capture tests (their helpers are in tests/helpers/capture.py)."""
 import pytest
 
-from capture_helpers import new_session, tiny_rig
+from helpers.capture import new_session, tiny_rig
 
 
 @pytest.fixture

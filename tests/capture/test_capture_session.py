@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from capture_helpers import new_session, run_lab, tiny_rig
+from helpers.capture import new_session, run_lab, tiny_rig
 from mifacerf.capture.journal import read_journal
 from mifacerf.capture.session import CaptureSession, SessionError, SessionInterrupted, verify_capture
 from mifacerf.capture.simulation.lab import LabOptions

@@ -96,7 +96,7 @@ def test_calibration_refuses_hopeless_input(boards):
 
 def test_cli_geometry_reports_errors_and_applies_to_a_capture(boards, tmp_path):
     root, rig, *_ = boards
-    from capture_helpers import new_session, run_lab, tiny_rig
+    from helpers.capture import new_session, run_lab, tiny_rig
 
     cap_rig = tiny_rig(2, 2, 2, 32)
     cap_rig.cameras = [c.resized(32, 32) for c in rig.cameras[:2]]  # the draft rig's first two cameras

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from capture_helpers import new_session, run_lab, tiny_rig
+from helpers.capture import new_session, run_lab, tiny_rig
 from mifacerf.capture.calibration.apply import apply_to_capture
 from mifacerf.capture.calibration.charts import ChartLayout, colorchecker_reference, grey_reference, patch_means
 from mifacerf.capture.calibration.colour_correction import delta_e2000, factor_exposure, fit_colour_matrix

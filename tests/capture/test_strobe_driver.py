@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from capture_helpers import scripted_exchange
+from helpers.capture import scripted_exchange
 from mifacerf.capture.hardware import protocol as P
 from mifacerf.capture.hardware.controller import (CommandRefused, ControllerTimeout, DeviceReset, PortError,
                                                   StrobeController)
@@ -182,13 +182,13 @@ def test_over_a_real_pseudo_terminal_with_faults_and_clean_up():
 
 
 def test_replay_of_recorded_transcript_matches_byte_for_byte():
-    """Regenerate with ``python tests/capture/capture_helpers.py`` after an intended protocol change."""
+    """Regenerate with ``python tests/helpers/capture.py`` after an intended protocol change."""
     port = ReplayPort.load(DATA / "transcript_olat.jsonl")
     ctl = StrobeController(port, timeout=0.02, rotate_s=0.0)
     res = scripted_exchange(ctl)
     assert port.finished
     assert len(res.events) == 6 and ctl.stats.retries > 0  # the recording holds lost replies and re-sends
-    # the recording (Faults(misfire=0.1, seed=11) in capture_helpers.record_transcript) holds two misfired
+    # the recording (Faults(misfire=0.1, seed=11) in helpers.capture.record_transcript) holds two misfired
     # strobes and three events lost on the line and read back with READLOG: all reported as recorded
     assert res.misfired_steps == [4, 5] and res.done == P.Done(6, 4, 2, False)
     assert res.recovered == 3 and ctl.stats.log_reads == 1

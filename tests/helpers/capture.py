@@ -1,6 +1,5 @@
-"""Helpers for the capture tests: tiny rigs, simulated labs, sessions (all seconds-cheap)."""
-import numpy as np
-
+"""Helpers of the capture tests: tiny rigs, simulated labs, sessions (all seconds-cheap), and the strobe
+controller's recorded transcript (tests/capture/data/transcript_olat.jsonl)."""
 from mifacerf.capture.expressions import session_expressions
 from mifacerf.capture.hardware.controller import StrobeController
 from mifacerf.capture.motion import MotionCheck
@@ -35,10 +34,6 @@ def run_lab(session, options=None, *, pty=False, timeout=0.05, retries=4, hook=N
     return rep, lab
 
 
-def rng_images(n, h=8, w=8, seed=0):
-    return np.random.default_rng(seed).random((n, h, w, 3)).astype(np.float32)
-
-
 def scripted_exchange(ctl, lights=(0, 1, 2, 5, 6, 7)):
     """The command script of the recorded transcript (tests/capture/data/transcript_olat.jsonl)."""
     from mifacerf.capture.hardware.sequence import olat_sequence
@@ -54,7 +49,7 @@ def scripted_exchange(ctl, lights=(0, 1, 2, 5, 6, 7)):
 
 
 def record_transcript(path):
-    """Regenerate the golden transcript: ``python tests/capture/capture_helpers.py``."""
+    """Regenerate the golden transcript: ``python tests/helpers/capture.py``."""
     from mifacerf.capture.hardware.controller import StrobeController
     from mifacerf.capture.simulation.device import Faults, SimulatedStrobeController
     from mifacerf.capture.simulation.transport import RecordingPort, SimulatedPort
@@ -70,6 +65,6 @@ def record_transcript(path):
 if __name__ == "__main__":
     import pathlib
 
-    out = pathlib.Path(__file__).parent / "data" / "transcript_olat.jsonl"
+    out = pathlib.Path(__file__).parents[1] / "capture" / "data" / "transcript_olat.jsonl"
     res, stats = record_transcript(out)
     print(f"wrote {out}: {len(res.events)} events, {stats}")
