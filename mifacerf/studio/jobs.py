@@ -94,6 +94,7 @@ class Jobs:
 
             try:
                 register_expression(self.session.root, job["expression"], step)
+                self.session.invalidate()
                 job.update(state="done", step="done", fraction=1.0)
             except Exception as exc:  # noqa: BLE001 — reported to the page, one line
                 job.update(state="failed", error=f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}",

@@ -23,11 +23,11 @@ from ..registration.dots import DotFilter, PRIOR_YELLOW, face_mask, peak_near
 from ..registration.hand import DEFAULT_DOT_RADIUS
 
 
-def untuned_filter(session) -> DotFilter:
+def untuned_filter(session, use_template: bool = True) -> DotFilter:
     """A dot filter without a registration (see the module docstring)."""
     from ..registration.proxies import proxies_for
 
-    tpl = session.template()
+    tpl = session.template() if use_template else None
     radius_px = (tpl.dot_radius if tpl is not None else DEFAULT_DOT_RADIUS) / centre_footprint(session.cams)
     diffuse = {c: proxies_for(session.cap, session.neutral, c).diffuse for c in session.names}
     if tpl is not None and len(tpl.dot_ids):

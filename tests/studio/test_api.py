@@ -215,3 +215,33 @@ def test_register_with_a_hand_fix_and_proposals_read_no_truth(capture, studio_ca
         assert len(prop["state"]["coarse"]) >= 12
         assert {"lip_upper", "lip_lower"} <= set(prop["state"]["rotoscope"]["curves"])
     assert opened == [], "the studio opened ground-truth files"
+
+
+def test_from_no_hand_inputs_to_a_registered_neutral(capture, studio_capture, client_for):
+    """No hand/ at all: the template is proposed from the neutral's images (dots matched across views),
+    accepted, and the neutral registers into it; nothing of the truth is read."""
+    import shutil
+    import time
+
+    _, truth = studio_capture
+    shutil.rmtree(capture / "hand")
+    with watch_opens(truth) as opened:
+        c, tok = client_for(capture)
+        h = _h(tok)
+        assert "missing" in c.get("/api/session", headers=h).json()["template_problem"]
+        assert c.post("/api/register/neutral", headers=h).status_code == 400     # nothing to register into
+        r = c.post("/api/proposals/template", headers=h, json={"accept": True}).json()
+        assert r["accepted"] and r["summary"]["points"] >= 60
+        tpl = json.loads((capture / "hand" / "template.json").read_text())
+        assert tpl["schema"] == "mifacerf.template/1" and len(tpl["coarse_points"]) == 18
+        assert len(tpl["triangles"]) > len(tpl["vertices"])
+        job = c.post("/api/register/neutral", headers=h).json()
+        for _ in range(600):
+            j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
+            if j["state"] in ("done", "failed"):
+                break
+            time.sleep(0.2)
+        assert j["state"] == "done", j
+        ex = c.get("/api/session", headers=h).json()["expressions"][0]
+        assert ex["registered"] and ex["dots_registered"] >= 0.4 * len(tpl["vertices"])
+    assert opened == []

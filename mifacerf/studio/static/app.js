@@ -92,9 +92,9 @@ function buildControls() {
     legend.appendChild(span);
   }
   const cs = document.getElementById("curve-select");
-  cs.innerHTML = S.info.curve_names.map((n) => `<option>${n}</option>`).join("");
+  cs.innerHTML = S.info.curve_names.map((n) => `<option value="${n}">${n}</option>`).join("");
   const ps = document.getElementById("point-select");
-  ps.innerHTML = S.info.point_names.map((n) => `<option>${n}</option>`).join("");
+  ps.innerHTML = S.info.point_names.map((n) => `<option value="${n}">${n}</option>`).join("");
   fillCoarseSelect();
   document.getElementById("light").max = S.info.n_lights - 1;
   const views = document.getElementById("views");
