@@ -9,5 +9,6 @@ there is a published one):
 - :mod:`.horn1987`: closed-form absolute orientation (rigid fit of two point sets), Horn (1987).
 - :mod:`.triangulate`: multi-view triangulation through calibrated, distorted cameras.
 - :mod:`.rigid`: rigid transforms as 4 × 4 matrices (apply, rotation angle, least-squares and robust fits).
+- :mod:`.maxima`: 3 × 3 local maxima of a 2-D map (dot-strength maps).
 - :mod:`.meshscene`: a triangle mesh in its own Mitsuba scene for ray casting (visibility).
 """

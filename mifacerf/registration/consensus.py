@@ -42,6 +42,7 @@ import numpy as np
 
 from ..camera import Camera
 from .dots import peak_near
+from ..geometry.maxima import local_maxima
 from ..geometry.triangulate import triangulate
 
 
@@ -60,10 +61,8 @@ class Peaks:
 
 def view_peaks(strength_map: np.ndarray, min_value: float, centroid_sigma: float | None = None) -> Peaks:
     """Local maxima (3 × 3) of a strength map at least ``min_value``, refined to sub-pixel centroids."""
-    from scipy.ndimage import maximum_filter
-
     m = np.asarray(strength_map, np.float32)
-    mx = (m >= min_value) & (m >= maximum_filter(m, size=3)) & (m > 0)
+    mx = local_maxima(m, min_value, positive=True)
     ij = np.argwhere(mx)
     if len(ij) == 0:
         return Peaks(np.zeros((0, 2)), np.zeros(0))

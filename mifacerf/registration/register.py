@@ -48,6 +48,7 @@ from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
+from ..geometry.maxima import local_maxima
 from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, rotation_angle_deg
 from ..geometry.triangulate import triangulate
 from .visibility import Visibility
@@ -676,7 +677,7 @@ class Registrar:
             if self.opt.remove_unregistered:
                 # 2-D detections left once the registered dots are painted out
                 left = np.maximum(self.filter.response(Inpainter(mask, valid).apply(d0)), 0) / s
-                peaks = _local_maxima(left, self.opt.unregistered_strength) & valid & ~mask
+                peaks = local_maxima(left, self.opt.unregistered_strength) & valid & ~mask
                 pk = np.argwhere(peaks)[:, ::-1].astype(np.float64)
                 if len(pk):
                     r_typ = self.tpl.dot_radius * focal / float(np.median(depth) if len(depth) else 1.3)
@@ -748,13 +749,6 @@ class Registrar:
                 reg.eye_centres = ec
                 self.writer.write_expression(reg, self.writer.meta["expressions"][name])
         return info
-
-
-def _local_maxima(img: np.ndarray, threshold: float) -> np.ndarray:
-    """(H, W) bool: pixels at least ``threshold`` and not smaller than any of their 8 neighbours."""
-    from scipy.ndimage import maximum_filter
-
-    return (img >= threshold) & (img >= maximum_filter(img, size=3))
 
 
 def _stats(x: np.ndarray) -> dict:

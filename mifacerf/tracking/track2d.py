@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.maxima import maxima_points
 from ..registration.dots import DotFilter, peak_near
 
 
@@ -42,17 +43,6 @@ class Detector:
         return {"filter": self.filter.to_dict(), "centroid_sigma": self.centroid_sigma}
 
 
-def local_maxima(strength: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels (M, 2) (u, v) that are 3 × 3 local maxima of a strength map at or above ``threshold``, and
-    their values (M,)."""
-    import cv2
-
-    S = np.asarray(strength, np.float32)
-    mx = cv2.dilate(S, np.ones((3, 3), np.uint8))
-    v, u = np.nonzero((S >= mx) & (S >= threshold))
-    return np.stack([u, v], 1).astype(np.float64), S[v, u]
-
-
 def search(strength: np.ndarray, predicted: np.ndarray, radius: float, threshold: float,
            centroid_sigma: float, maxima=None) -> tuple[np.ndarray, np.ndarray]:
     """Dots near predicted pixels (N, 2): (found (N, 2) with NaN where none, strength (N,)).
@@ -60,7 +50,8 @@ def search(strength: np.ndarray, predicted: np.ndarray, radius: float, threshold
     The image dot of a prediction is the local maximum of the strength map *nearest* to it (not
     the strongest in a window: a brighter neighbouring dot must not win) within ``radius`` pixels,
     whose strength passes ``threshold``; its position is refined to sub-pixel precision.
-    ``maxima``: precomputed :func:`local_maxima` of the map (with a threshold ≤ this one).
+    ``maxima``: precomputed :func:`mifacerf.geometry.maxima.maxima_points` of the float32 map (with a
+    threshold ≤ this one).
     """
     from scipy.spatial import cKDTree
 
@@ -68,7 +59,7 @@ def search(strength: np.ndarray, predicted: np.ndarray, radius: float, threshold
     out = np.full(pred.shape, np.nan)
     val = np.zeros(len(pred))
     ok = np.isfinite(pred).all(1)
-    peaks, values = maxima if maxima is not None else local_maxima(strength, threshold)
+    peaks, values = maxima if maxima is not None else maxima_points(np.asarray(strength, np.float32), threshold)
     keep = values >= threshold
     peaks = peaks[keep]
     if not ok.any() or len(peaks) == 0:

@@ -34,10 +34,11 @@ import numpy as np
 from ..camera import Camera
 from ..registration.morph import mls_affine
 from ..registration.snap import dot_graph
+from ..geometry.maxima import maxima_points
 from ..geometry.rigid import apply as apply_T, robust_rigid
 from ..geometry.triangulate import triangulate
 from ..registration.visibility import Visibility
-from .track2d import Detector, local_maxima, resolve_conflicts, search
+from .track2d import Detector, resolve_conflicts, search
 
 
 @dataclass
@@ -122,7 +123,7 @@ class DotTracker:
         sel_t = visible & tracked
         sel_l = visible & ~tracked
         cs = self.detector.centroid_sigma
-        maxima = local_maxima(strength, min(o.accept, o.redetect_accept))
+        maxima = maxima_points(np.asarray(strength, np.float32), min(o.accept, o.redetect_accept))
         if sel_t.any():
             found[sel_t] = search(strength, p[sel_t], radius_t, o.accept, cs, maxima)[0]
         if sel_l.any():
