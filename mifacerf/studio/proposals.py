@@ -110,10 +110,12 @@ def propose_expression(session, name: str) -> dict:
         return {"source": None, "note": "no template yet: propose one on the neutral first", "state": None}
     maps = _strength_maps(session, name)
     src = nearest_registered(session, name, maps)
-    if src is None:
-        return {"source": None, "note": "no registered expression to propose from: register the neutral first",
-                "state": None}
-    R = session.registered(src)
+    if src is not None:
+        R = session.registered(src)
+    elif session.registered(session.neutral) is None:
+        src, R = "template", _template_as_registered(session, tpl)     # nothing registered yet: the template
+    else:
+        return {"source": None, "note": "no registered expression to propose from", "state": None}
     fp = centre_footprint(session.cams)
     search = max(1.5, 0.35 * _dot_spacing(tpl) / fp)
     coarse = tpl.coarse
@@ -149,7 +151,7 @@ def propose_expression(session, name: str) -> dict:
             V = CoarseMorph(cR, cE, tpl.coarse_triangles)(R.vertices)
         except (ValueError, np.linalg.LinAlgError):
             V = R.vertices.copy()
-    rot_src = session.hand_state(src)["rotoscope"]
+    rot_src = session.hand_state(src)["rotoscope"] if src != "template" else {"curves": {}, "points": {}}
     forward = np.array([0.0, 0.0, 1.0])
     for mname, ids in tpl.margins.items():
         views = [c for c in rot_src["curves"].get(mname, {}) if c in session.names] or \
@@ -157,9 +159,15 @@ def propose_expression(session, name: str) -> dict:
         if len(views) >= 2:
             state["rotoscope"]["curves"][mname] = {
                 c: np.round(session.camera(c).project(_dense(V[ids]))[0], 3).tolist() for c in views}
-    for side, eye_ids in (("L", tpl.regions.get("eye_left")), ("R", tpl.regions.get("eye_right"))):
+    for side in ("L", "R"):
         curve = rot_src["curves"].get(f"iris_{side}")
         if not curve:
+            circle = _iris_from_template(tpl, side, R, V)
+            if circle is not None:
+                views = _best_views(session, circle, forward)
+                if len(views) >= 2:
+                    state["rotoscope"]["curves"][f"iris_{side}"] = {
+                        c: np.round(session.camera(c).project(circle)[0], 3).tolist() for c in views}
             continue
         out = {}
         for c, poly in curve.items():
@@ -197,6 +205,35 @@ def propose_expression(session, name: str) -> dict:
             "note": f"from {src}: {n_ok} of {len(coarse)} coarse points found on this expression's dots; "
                     f"{len(state['rotoscope']['curves'])} curves and {len(state['rotoscope']['points'])} marks "
                     "projected from the coarse morph"}
+
+
+def _template_as_registered(session, tpl):
+    """The template standing in for a registered neutral (positions as placed, visibility ray-traced)."""
+    from types import SimpleNamespace
+
+    from ..registration.visibility import Visibility
+
+    vis = Visibility(tpl.triangles, tpl.n_vertices, tol=max(0.5 * centre_footprint(session.cams), 5e-4))
+    return SimpleNamespace(vertices=tpl.vertices.copy(), visible=vis(tpl.vertices, session.cams, min_cos=0.3),
+                           status=np.ones(tpl.n_vertices, np.int8), teeth=np.stack([np.eye(4)] * 2),
+                           head_pose=np.eye(4))
+
+
+def _iris_from_template(tpl, side: str, R, V: np.ndarray, n: int = 24) -> np.ndarray | None:
+    """(n, 3) the limbus of eye ``side`` looking forward (+Z of the head), moved with the morph (nearest vertex)."""
+    eye = tpl.eyes.get(side) or {}
+    if "centre" not in eye or "iris_radius" not in eye:
+        return None
+    H = np.asarray(R.head_pose, np.float64)
+    c = H[:3, :3] @ np.asarray(eye["centre"], np.float64) + H[:3, 3]
+    k = int(np.argmin(np.linalg.norm(R.vertices - c, axis=1)))
+    g = H[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    c = c + (V[k] - R.vertices[k]) + float(eye.get("iris_depth", 0.0)) * g
+    a = np.cross(g, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(g, a)
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return c + float(eye["iris_radius"]) * (np.cos(t)[:, None] * a + np.sin(t)[:, None] * b)
 
 
 def _dense(P: np.ndarray, step: float = 4e-4) -> np.ndarray:

@@ -103,7 +103,7 @@ def _wait(d, js, timeout=60.0, what=""):
 
 def _open(d, served, expression=None):
     d.get(served.url + (f"&expression={expression}" if expression else ""))
-    _wait(d, "return window.studio && studio.state && studio.info && "
+    _wait(d, "return window.studio && studio.state && studio.info && !studio.loading && "
              "Object.keys(studio.images).length === studio.info.cameras.length", what="the page to load")
     errors = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
     assert errors == [], errors
@@ -162,6 +162,7 @@ def _px_per_css(d, cam):
 
 
 def _shot(d, name):
+    _wait(d, "return !studio.loading", what="the page to finish drawing")
     SHOTS.mkdir(parents=True, exist_ok=True)
     d.save_screenshot(str(SHOTS / f"{name}.png"))
 

@@ -189,6 +189,7 @@ async function selectExpression(name) {
 }
 
 async function loadExpression() {
+  S.loading = true;
   const d = await api(`/api/expression/${encodeURIComponent(S.expr)}`);
   S.data = d; S.state = d.state; S.version = d.version; S.dirty = false;
   say(`${S.expr}: saved (version ${S.version})`);
@@ -196,6 +197,7 @@ async function loadExpression() {
   document.getElementById("report").textContent = rep ? `registration of ${S.expr} (${d.geometry.source}): ` + JSON.stringify(rep, null, 1).slice(0, 4000) : (d.geometry && d.geometry.source ? `overlays from: ${d.geometry.source}` : "no template yet");
   await retriangulateAll();
   drawAll();
+  S.loading = false;
 }
 
 function loadImages() {
