@@ -48,10 +48,12 @@ from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
+from ..geometry.footprint import centre_footprint
 from ..geometry.maxima import local_maxima
 from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, rotation_angle_deg
 from ..geometry.triangulate import triangulate
 from .visibility import Visibility
+from ..stats import median_p95
 
 
 HEAD = ("ear_L", "ear_R", "nose_bridge")
@@ -137,7 +139,7 @@ class Registrar:
         self.cams = list(capture.rig.cameras)
         self.names = [c.name for c in self.cams]
         self.camd = {c.name: c for c in self.cams}
-        self.fp = float(np.median([c.pixel_footprint(np.linalg.norm(c.centre)) for c in self.cams]))
+        self.fp = centre_footprint(self.cams)
         self.vis = Visibility(self.tpl.triangles, self.tpl.n_vertices, tol=max(0.5 * self.fp, 5e-4))
         self.writer = RegistrationWriter(out, capture, self.tpl.to_dict())
         self.registered: dict[str, RegisteredExpression] = {}
@@ -276,8 +278,8 @@ class Registrar:
             "threshold_schedule": [round(float(t), 4) for t in r.schedule],
             "accepted_per_level": [int(a) for a in r.accepted_per_level],
             "snap_attempts": int(r.attempts),
-            "reprojection_px": _stats(reproj[self.dots]),
-            "views_per_dot": _stats(nviews[self.dots][nviews[self.dots] > 0].astype(float)),
+            "reprojection_px": median_p95(reproj[self.dots]),
+            "views_per_dot": median_p95(nviews[self.dots][nviews[self.dots] > 0].astype(float)),
         })
         return X, snapped, r
 
@@ -749,14 +751,6 @@ class Registrar:
                 reg.eye_centres = ec
                 self.writer.write_expression(reg, self.writer.meta["expressions"][name])
         return info
-
-
-def _stats(x: np.ndarray) -> dict:
-    x = np.asarray(x, np.float64)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {"median": None, "p95": None}
-    return {"median": round(float(np.median(x)), 4), "p95": round(float(np.percentile(x, 95)), 4)}
 
 
 def order_expressions(reg: Registrar, todo: list[str]) -> list[str]:

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..capture_folder import write_json_atomic
+from ..geometry.footprint import centre_footprint
 from ..rig import Rig
 
 CLICK_SIGMA = 0.7        #: pixels per axis
@@ -114,7 +115,7 @@ def _place(rig: Rig, X: np.ndarray, vis: np.ndarray, rng, sigma: float, max_view
     out = np.where(tr.ok[:, None], tr.points, np.nan)
     bad = ~tr.ok
     if bad.any():
-        fp = np.median([cam.pixel_footprint(np.linalg.norm(cam.centre)) for cam in rig.cameras])
+        fp = centre_footprint(rig.cameras)
         out[bad] = X[bad] + rng.normal(0.0, sigma * fp, (bad.sum(), 3))
     return out
 
@@ -205,7 +206,7 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
     by_name = {t.name: t for t in truths}
     neutral = neutral or ("neutral" if "neutral" in by_name else truths[0].name)
     tn = by_name[neutral]
-    fp = float(np.median([cam.pixel_footprint(np.linalg.norm(cam.centre)) for cam in rig.cameras]))
+    fp = centre_footprint(rig.cameras)
     kinds = [v["kind"] for v in template["vertices"]]
     vnames = [v.get("name", "") for v in template["vertices"]]
 

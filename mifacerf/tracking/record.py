@@ -38,6 +38,7 @@ import numpy as np
 from ..camera import Camera
 from ..capture_folder import write_json_atomic
 from .folder import PerformanceWriter
+from ..geometry.footprint import centre_footprint
 from .performance import Script, script as make_script
 
 TRUTH_FORMAT = "mifacerf.performance_truth"
@@ -349,7 +350,7 @@ def record_performance(out, seconds: float = 2.0, fps: float = 60.0, size: int |
     bar.close()
     render_s = time.perf_counter() - t0
     truth = performance_truth(subject, sc)
-    fp = float(np.median([c.pixel_footprint(np.linalg.norm(c.centre)) for c in cams]))
+    fp = centre_footprint(cams)
     lead = int(np.ceil(0.2 * fps))
     keys = choose_keyframes(truth, template, fps, fp, lead) if keyframes else {"lips": [], "eyelids": [], "irises": []}
     marks = keyframe_marks(subject, sc.params, keys, cams, seed) if keyframes else {}

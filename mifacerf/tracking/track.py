@@ -34,6 +34,7 @@ from ..capture_folder import write_json_atomic
 from ..registration.contours import propagate, rings
 from ..registration.hand import Template, read_hand_inputs
 from ..registration.morph import mls_affine
+from ..stats import median_p95
 from . import health as HL
 from .folder import PerformanceFolder
 from .keyframes import LID_MARGINS, LIP_MARGINS, eye_tracks, margin_tracks
@@ -189,7 +190,7 @@ def track_performance(perf, out=None, model=None, options: Options | None = None
         "dots_tracked_whole_sequence": round(float(whole.mean()), 4),
         "dots_not_tracked_throughout": lost[:50] + (["..."] if len(lost) > 50 else []),
         "redetections": int(tracker.redetected.sum()),
-        "reprojection_px": _stats(tracker.reproj[dst == 1]),
+        "reprojection_px": median_p95(tracker.reproj[dst == 1]),
         "camera_problems": problems,
         "frames_without_two_usable_cameras": _ranges(np.flatnonzero(~usable)),
         "lips_eyelids": margin_report, "eyes": eye_report, "keyframes": keys,
@@ -227,14 +228,6 @@ def _ranges(frames) -> str:
         if f is not None:
             start = prev = f
     return ",".join(out)
-
-
-def _stats(x) -> dict:
-    x = np.asarray(x, np.float64)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {"median": None, "p95": None}
-    return {"median": round(float(np.median(x)), 4), "p95": round(float(np.percentile(x, 95)), 4)}
 
 
 class Track:

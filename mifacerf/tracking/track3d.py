@@ -34,6 +34,7 @@ import numpy as np
 from ..camera import Camera
 from ..registration.morph import mls_affine
 from ..registration.snap import dot_graph
+from ..geometry.footprint import centre_footprint
 from ..geometry.maxima import maxima_points
 from ..geometry.rigid import apply as apply_T, robust_rigid
 from ..geometry.triangulate import triangulate
@@ -82,7 +83,7 @@ class DotTracker:
         self.dots = np.asarray(dot_ids, np.int64)
         self.X_ref = self.V_ref[self.dots]
         self.dot_radius = float(dot_radius)
-        self.fp = float(np.median([c.pixel_footprint(np.linalg.norm(c.centre)) for c in cams]))
+        self.fp = centre_footprint(cams)
         self.vis = Visibility(self.F, len(self.V_ref), tol=max(0.5 * self.fp, 5e-4))
         is_dot = np.zeros(len(self.V_ref), bool)
         is_dot[self.dots] = True
