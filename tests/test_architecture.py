@@ -29,7 +29,7 @@ from collections import defaultdict
 
 import pytest
 
-from source_tree import ROOT, source_modules, source_packages
+from helpers.source_tree import ROOT, source_modules, source_packages
 
 FLOORS = {
     "capture": 1, "synthetic": 1,

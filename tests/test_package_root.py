@@ -12,7 +12,7 @@ import time
 import click
 import pytest
 
-from source_tree import ROOT, source_modules
+from helpers.source_tree import ROOT, source_modules
 
 HEAVY = ("mitsuba", "drjit")
 

@@ -14,7 +14,7 @@ import zipfile
 
 import pytest
 
-from source_tree import ROOT, package_dirs, pyproject, source_modules, source_packages, stray_files
+from helpers.source_tree import ROOT, package_dirs, pyproject, source_modules, source_packages, stray_files
 
 
 def _installed_path(module: str, package: bool) -> str:
