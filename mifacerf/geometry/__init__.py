@@ -10,5 +10,6 @@ there is a published one):
 - :mod:`.triangulate`: multi-view triangulation through calibrated, distorted cameras.
 - :mod:`.rigid`: rigid transforms as 4 × 4 matrices (apply, rotation angle, least-squares and robust fits).
 - :mod:`.maxima`: 3 × 3 local maxima of a 2-D map (dot-strength maps).
+- :mod:`.margins`: lip and eyelid margins of a template mesh from its hole loops.
 - :mod:`.meshscene`: a triangle mesh in its own Mitsuba scene for ray casting (visibility).
 """

@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ..geometry.margins import margins_from_holes
+
 TEMPLATE_SCHEMA = "mifacerf.template/1"
 COARSE_FORMAT = "mifacerf.coarse_points"
 ROTOSCOPE_FORMAT = "mifacerf.rotoscope"
 MARGIN_NAMES = ("lip_upper", "lip_lower", "lid_upper_L", "lid_lower_L", "lid_upper_R", "lid_lower_R")
-HOLE_MARGINS = {"mouth": ("lip_upper", "lip_lower"), "eye_left": ("lid_upper_L", "lid_lower_L"),
-                "eye_right": ("lid_upper_R", "lid_lower_R")}
 HEAD_POINT_NAMES = ("ear_L", "ear_R", "nose_bridge")
 EYE_SIDES = {"eye_left": "L", "eye_right": "R"}
 DEFAULT_DOT_RADIUS = 0.0015
@@ -30,23 +30,6 @@ DEFAULT_DOT_RADIUS = 0.0015
 
 class HandInputError(ValueError):
     """A hand-input file that cannot be used at all (the message names it)."""
-
-
-def margins_from_holes(holes: dict, kinds: list) -> dict:
-    """Ordered margins from the template's hole loops ``[corner, upper..., corner, lower reversed...]``."""
-    out = {}
-    for hole, loop in holes.items():
-        if hole not in HOLE_MARGINS:
-            continue
-        loop = [int(i) for i in loop]
-        corners = [k for k, v in enumerate(loop) if kinds[v].endswith("_corner")]
-        if len(corners) != 2 or corners[0] != 0:
-            continue
-        k = corners[1]
-        up_name, lo_name = HOLE_MARGINS[hole]
-        out[up_name] = np.array(loop[:k + 1], np.int64)
-        out[lo_name] = np.array([loop[0]] + loop[:k:-1] + [loop[k]], np.int64)
-    return out
 
 
 @dataclass

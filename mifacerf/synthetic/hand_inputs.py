@@ -196,7 +196,7 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
                      seed: int = 0, click_sigma: float = CLICK_SIGMA, neutral: str | None = None) -> Path:
     """Write ``CAP_DIR/hand/`` from a ``mifacerf.template/1`` dict whose positions are the neutral's truth
     and the per-expression truth the user looks at. Returns the hand folder."""
-    from ..registration.hand import margins_from_holes
+    from ..geometry.margins import margins_from_holes
     from ..geometry.triangulate import triangulate
 
     rng = np.random.default_rng(seed + 8111)

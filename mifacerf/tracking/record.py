@@ -188,7 +188,7 @@ def interpolate_keys(X: np.ndarray, keys: list[int]) -> np.ndarray:
 
 def choose_keyframes(truth: dict, template, fps: float, footprint: float, lead_in_frames: int) -> dict:
     """The synthetic user's keyframes {"lips", "eyelids", "irises": [frames]} (see the module docstring)."""
-    from ..registration.hand import margins_from_holes
+    from ..geometry.margins import margins_from_holes
 
     V = truth["template_vertices"]
     head = truth["head"]
