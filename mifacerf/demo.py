@@ -129,10 +129,17 @@ def stage_renders(model: Path, out: Path) -> dict:
             "blends": blends}
 
 
-def stage_performance(out: Path, model: Path) -> dict:
+def stage_performance(out: Path, model: Path, **options) -> dict:
+    """Record (once), track, drive (:func:`mifacerf.tracking.demo.run_performance`; ``options`` are its
+    keywords), and compare the track with the truth (dot error, dots tracked throughout)."""
+    from .evaluation.tracking import evaluate_track
     from .tracking.demo import run_performance
 
-    return run_performance(out, model)
+    m = run_performance(out, model, **options)
+    ev = evaluate_track(m.pop("track"), out)
+    head = {k: m.pop(k) for k in ("frames", "fps")}
+    return {**head, "dot_error_px": ev["dot_error"], "dots_tracked_whole_sequence": ev["dots_tracked_whole_sequence"],
+            "dot_frames_tracked_of_seen": ev["dot_frames_tracked_of_seen"], **m}
 
 
 def stage_metrics(out: Path, model: Path, fast: bool) -> dict:

@@ -1,5 +1,7 @@
-"""CLI: ``mifacerf bench`` (run time against error) and ``mifacerf evaluate …`` (comparisons with the
-synthetic ground truth, one sub-command per stage: ``render``, ``registration``).
+"""CLI: ``mifacerf bench`` (run time against error) and ``mifacerf evaluate …``: the comparisons with the
+synthetic ground truth, one sub-command per stage — ``render`` (:mod:`.render_cases`), ``registration``
+(:mod:`.registration`), ``tracking`` (:mod:`.tracking`), ``drive`` (:mod:`.drive`), ``blending``
+(:mod:`.blending`) — and ``blending-speed`` (:mod:`mifacerf.blending.benchmark`).
 
 Imports sit inside the commands so that ``mifacerf evaluate --help`` stays fast.
 """
@@ -9,6 +11,8 @@ import json
 from pathlib import Path
 
 import click
+
+from ..tracking.cli import drive_options
 
 
 @click.command("bench")
@@ -38,11 +42,12 @@ def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick):
 def evaluate_group():
     """Compare a stage's output with the synthetic ground truth (evaluation only: no stage reads the truth).
 
-    OUT is a 'mifacerf synth' output folder (capture/ and truth/).
+    OUT is a 'mifacerf synth' output folder (capture/ and truth/). Also here: blending-speed, the timing of
+    the blend weights against their NumPy reference.
     """
 
 
-@evaluate_group.command("render")
+@evaluate_group.command("render", short_help="Rendering accuracy against path-traced truth.")
 @click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--out", default="evaluation", show_default=True, type=click.Path(file_okay=False))
@@ -71,7 +76,7 @@ def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
     click.echo(f"truth noise floor: {report['truth_noise_psnr']:.1f} dB (lowest case); report: {out / 'report.json'}")
 
 
-@evaluate_group.command("registration")
+@evaluate_group.command("registration", short_help="A registration against the true fiducials.")
 @click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
 @click.option("--registration", default=None, type=click.Path(file_okay=False),
               help="The registration folder to evaluate (default: OUT/capture/registration).")
@@ -94,7 +99,7 @@ def registration_cmd(synth_out, registration, json_path, pictures, pictures_dir)
             click.echo(path)
 
 
-@evaluate_group.command("blending")
+@evaluate_group.command("blending", short_help="The §5 weights against true deformations.")
 @click.option("--subject", type=click.Choice(["synthetic", "toy"]), default="synthetic", show_default=True)
 @click.option("--residual-threshold", type=float, default=None, help="Default: the model's.")
 @click.option("--similarity-threshold", type=float, default=None, help="Default: the model's.")
@@ -122,7 +127,7 @@ def blending_cmd(subject, residual_threshold, similarity_threshold, out_dir, jso
             json.dump(out, f, indent=1)
 
 
-@evaluate_group.command("blending-speed")
+@evaluate_group.command("blending-speed", short_help="Time the §5 weights: Dr.Jit against the reference.")
 @click.option("--vertices", type=int, default=300, show_default=True)
 @click.option("--sources", type=int, default=60, show_default=True)
 @click.option("--frames", type=int, default=10000, show_default=True)
@@ -131,6 +136,46 @@ def blending_cmd(subject, residual_threshold, similarity_threshold, out_dir, jso
 def blending_speed_cmd(vertices, sources, frames, threads, json_path):
     """Time the §5 weights: the Dr.Jit evaluator against the NumPy/SciPy reference (toy sheet)."""
     from ..blending.benchmark import run
+
+
+@evaluate_group.command("tracking", short_help="A track against the true performance.")
+@click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
+@click.argument("track", required=False, type=click.Path(exists=True, file_okay=False))
+@click.option("--overlay", "overlays", multiple=True, type=int,
+              help="Also write TRACK/overlay_F<frame>_<camera>.png for this frame: the tracked dots and, as blue "
+                   "crosses, the true ones.")
+def tracking_cmd(synth_out, track, overlays):
+    """A TRACK of OUT's performance against OUT/truth/performance: dots, head pose, gaze, lips and lids
+    (TRACK/evaluation.json; TRACK defaults to OUT/performance/track)."""
+    from ..tracking.track import Track
+    from .tracking import evaluate_track, overlay
+
+    tr = Track(track or Path(synth_out) / "performance" / "track")
+    for f in overlays:
+        for cam in tr.meta["cameras"]:
+            overlay(tr, min(f, tr.n_frames - 1), cam, tr.root / f"overlay_F{f:05d}_{cam}.png", truth=synth_out)
+        click.echo(f"overlays of frame {f}: {tr.root}/overlay_F{f:05d}_*.png")
+    e = evaluate_track(tr, synth_out)
+    click.echo(f"dot error (tracked dots): median {e['dot_error']['median']} px, 95th percentile "
+               f"{e['dot_error']['p95']} px; dots tracked through the whole sequence: "
+               f"{100 * e['dots_tracked_whole_sequence']:.1f} %  ({tr.root / 'evaluation.json'})")
+
+
+@evaluate_group.command("drive", short_help="Driven renders against path-traced truth.")
+@click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
+@click.argument("track", type=click.Path(exists=True, file_okay=False))
+@drive_options
+@click.option("--truth-spp", type=int, default=64, show_default=True, help="Samples per pixel of the truth.")
+def drive_cmd(synth_out, track, truth_spp, **options):
+    """'mifacerf drive TRACK' with every frame path-traced from OUT's true performance: PSNR per frame,
+    the truth's noise floor and coherence (in drive.json), truth above render in strip.png."""
+    from ..tracking.cli import run_drive
+    from .drive import evaluate_drive
+
+    def drive(track, model, out, **keywords):
+        return evaluate_drive(track, model, synth_out, out, truth_spp=truth_spp, **keywords)
+
+    run_drive(drive, track, **options)
 
     out = run(vertices, sources, frames, threads=threads)
     if json_path:

@@ -1,6 +1,8 @@
 """CLI: ``mifacerf track`` (performance → per-frame target mesh) and ``mifacerf drive`` (track → relit video).
 
-The performance itself is recorded by ``mifacerf synth OUT --performance SECONDS``.
+The performance itself is recorded by ``mifacerf synth OUT --performance SECONDS``; the comparisons with
+the synthetic truth are ``mifacerf evaluate tracking`` and ``mifacerf evaluate drive``
+(:mod:`mifacerf.evaluation.cli`, which shares the drive options below).
 """
 from __future__ import annotations
 
@@ -19,12 +21,9 @@ import click
 @click.option("--frames", type=int, default=None, help="Track only the first N frames.")
 @click.option("--smooth", type=float, default=1.0, show_default=True,
               help="Temporal smoothing of tracked dots (Gaussian sigma, frames; 0 = off).")
-@click.option("--evaluate", "evaluate", default=None, type=click.Path(exists=True, file_okay=False),
-              help="Evaluation only: a 'mifacerf synth' output folder whose truth/performance the finished "
-                   "track is compared with (tracking itself never reads it).")
 @click.option("--overlay", "overlays", multiple=True, type=int,
               help="Also write TRACK/overlay_F<frame>_<camera>.png (tracked dots over the video) for this frame.")
-def track_cmd(performance, out, model, frames, smooth, evaluate, overlays):
+def track_cmd(performance, out, model, frames, smooth, overlays):
     """Track the dots of a multi-view PERFORMANCE; write the per-frame target mesh (paper §6.4)."""
     from .folder import PerformanceError
     from .track import TrackError, track_performance
@@ -36,44 +35,44 @@ def track_cmd(performance, out, model, frames, smooth, evaluate, overlays):
     except (PerformanceError, TrackError, OSError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"track written to {path}")
+    from .overlay import overlay
     from .track import Track
 
     tr = Track(path)
     for f in overlays:
-        from .evaluate import overlay
-
         for cam in tr.meta["cameras"]:
-            p = overlay(tr, min(f, tr.n_frames - 1), cam, path / f"overlay_F{f:05d}_{cam}.png", truth=evaluate)
+            overlay(tr, min(f, tr.n_frames - 1), cam, path / f"overlay_F{f:05d}_{cam}.png")
         click.echo(f"overlays of frame {f}: {path}/overlay_F{f:05d}_*.png")
-    if evaluate:
-        from .evaluate import evaluate_track
-
-        e = evaluate_track(tr, evaluate)
-        click.echo(f"dot error (tracked dots): median {e['dot_error']['median']} px, 95th percentile "
-                   f"{e['dot_error']['p95']} px; dots tracked through the whole sequence: "
-                   f"{100 * e['dots_tracked_whole_sequence']:.1f} %  ({path / 'evaluation.json'})")
 
 
-@click.command("drive")
-@click.argument("track", type=click.Path(exists=True, file_okay=False))
-@click.option("--model", required=True, type=click.Path(exists=True, file_okay=False), help="The model to drive.")
-@click.option("-o", "--out", default=None, type=click.Path(file_okay=False), help="Default: TRACK/drive.")
-@click.option("--env", "envs", multiple=True, default=("sky", "interior"), show_default=True,
-              help="Environment(s): sky, sunsky, interior, gradient or a lat-long .exr/.hdr (repeat).")
-@click.option("--camera", default=None, help="A capture camera's name, or yaw,pitch in degrees (default: the model's second camera).")
-@click.option("--size", type=int, default=None, help="Image size (square; default: the camera's).")
-@click.option("--spp", type=int, default=4, show_default=True)
-@click.option("--frames", default=None, help="Drive only the first N frames, or frames A:B[:STEP] (B excluded).")
-@click.option("--truth", default=None, type=click.Path(exists=True, file_okay=False),
-              help="Evaluation: a 'mifacerf synth' output folder; path-trace every frame's truth and report PSNR.")
-@click.option("--truth-spp", type=int, default=64, show_default=True)
-@click.option("--no-exr", is_flag=True, help="Write the PNG frames and the video only.")
-@click.option("--weight-smoothing", type=float, default=2.0, show_default=True,
-              help="Temporal filter of the §5 weights (Gaussian sigma in frames; 0 = off).")
-def drive_cmd(track, model, out, envs, camera, size, spp, frames, truth, truth_spp, no_exr, weight_smoothing):
-    """Drive MODEL with a TRACK: §5 weights per frame, relit renders, composites, a video (paper §7)."""
-    from ..rendering.model import ModelError
-    from .drive import drive
+#: the options of ``mifacerf drive`` (``mifacerf evaluate drive`` takes them too): see :func:`drive_options`
+DRIVE_OPTIONS = (
+    click.option("--model", required=True, type=click.Path(exists=True, file_okay=False), help="The model to drive."),
+    click.option("-o", "--out", default=None, type=click.Path(file_okay=False), help="Default: TRACK/drive."),
+    click.option("--env", "envs", multiple=True, default=("sky", "interior"), show_default=True,
+                 help="Environment(s): sky, sunsky, interior, gradient or a lat-long .exr/.hdr (repeat)."),
+    click.option("--camera", default=None,
+                 help="A capture camera's name, or yaw,pitch in degrees (default: the model's second camera)."),
+    click.option("--size", type=int, default=None, help="Image size (square; default: the camera's)."),
+    click.option("--spp", type=int, default=4, show_default=True),
+    click.option("--frames", default=None, help="Drive only the first N frames, or frames A:B[:STEP] (B excluded)."),
+    click.option("--no-exr", is_flag=True, help="Write the PNG frames and the video only."),
+    click.option("--weight-smoothing", type=float, default=2.0, show_default=True,
+                 help="Temporal filter of the §5 weights (Gaussian sigma in frames; 0 = off)."),
+)
+
+
+def drive_options(command):
+    """Decorate a click command with :data:`DRIVE_OPTIONS` (its function takes them as keywords)."""
+    for option in reversed(DRIVE_OPTIONS):
+        command = option(command)
+    return command
+
+
+def run_drive(drive, track, model, out, envs, camera, size, spp, frames, no_exr, weight_smoothing) -> Path:
+    """Parse :data:`DRIVE_OPTIONS` and call ``drive(track, model, out, **keywords)`` (:func:`.drive.drive` or
+    one with the same keywords); errors become click errors, the result is echoed."""
+    from ..formats.model import ModelError
     from .track import TrackError
 
     if frames is not None:
@@ -85,8 +84,19 @@ def drive_cmd(track, model, out, envs, camera, size, spp, frames, truth, truth_s
     if camera and "," in camera:
         cam = tuple(float(x) for x in camera.split(","))
     try:
-        path = drive(track, model, out, envs=envs, camera=cam, size=size, spp=spp, truth=truth, truth_spp=truth_spp,
-                     frames=frames, exr=not no_exr, weight_sigma=weight_smoothing, log=click.echo)
+        path = drive(track, model, out, envs=envs, camera=cam, size=size, spp=spp, frames=frames, exr=not no_exr,
+                     weight_sigma=weight_smoothing, log=click.echo)
     except (TrackError, ModelError, ValueError, KeyError, OSError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"driven performance written to {path} (videos: {', '.join(str(p) for p in sorted(Path(path).glob('*/performance.mp4')))})")
+    return path
+
+
+@click.command("drive")
+@click.argument("track", type=click.Path(exists=True, file_okay=False))
+@drive_options
+def drive_cmd(track, **options):
+    """Drive MODEL with a TRACK: §5 weights per frame, relit renders, composites, a video (paper §7)."""
+    from .drive import drive
+
+    run_drive(drive, track, **options)

@@ -4,13 +4,13 @@
 
 1. records a 2 s performance into ``OUT/performance`` (192 px, six cameras, 60 fps), reusing the
    capture's rig and template — skipped when it is already there;
-2. tracks it with the model as rest reference (``OUT/performance/track``) and compares the track with
-   the truth (dot error, dots tracked throughout; evaluation only);
+2. tracks it with the model as rest reference (``OUT/performance/track``);
 3. drives the model with it under the ``interior`` environment from the second capture camera,
    composited into the plate: ``OUT/performance_render/interior/{frames/, performance.mp4}``.
 
-Path-traced ground truth for every frame is left to ``mifacerf drive --truth`` (docs/tracking.md):
-at 64 samples per pixel it costs ~3 s a frame on two cores.
+The comparison of the track with the truth is the demo's (:func:`mifacerf.demo.stage_performance`,
+through :mod:`mifacerf.evaluation.tracking`). Path-traced ground truth for every frame is left to
+``mifacerf evaluate drive`` (docs/tracking.md): at 64 samples per pixel it costs ~3 s a frame on two cores.
 """
 from __future__ import annotations
 
@@ -22,12 +22,11 @@ ENV = "interior"
 
 
 def run_performance(out, model, seconds: float = SECONDS, size: int = SIZE, env: str = ENV) -> dict:
-    """Record (if needed), track and drive; returns the stage's metrics (JSON-able)."""
+    """Record (if needed), track and drive; returns the stage's metrics (JSON-able; ``track``: the track folder)."""
     import click
 
     from .drive import drive
-    from .evaluate import evaluate_track
-    from .record import record_performance
+    from ..synthetic.recording import record_performance
     from .track import Track, track_performance
 
     out = Path(out)
@@ -37,16 +36,13 @@ def run_performance(out, model, seconds: float = SECONDS, size: int = SIZE, env:
     else:
         record_performance(out, seconds, size=size, log=click.echo)
     track = Track(track_performance(perf, perf / "track", model=model, log=click.echo))
-    ev = evaluate_track(track, out)
     d = drive(track, model, out / "performance_render", envs=(env,), log=click.echo)
     import json
 
     meta = json.loads((d / "drive.json").read_text())
     e = meta["environments"][env]
     return {
-        "frames": track.n_frames, "fps": track.fps,
-        "dot_error_px": ev["dot_error"], "dots_tracked_whole_sequence": ev["dots_tracked_whole_sequence"],
-        "dot_frames_tracked_of_seen": ev["dot_frames_tracked_of_seen"],
+        "frames": track.n_frames, "fps": track.fps, "track": str(track.root),
         "tracking_seconds_per_frame": track.meta["time_s"]["per_frame_mean"],
         "render_seconds_per_frame": e["render_seconds_per_frame"],
         "weights_coherence": meta["weights"]["coherence"], "pixel_coherence": e["pixel_coherence"],

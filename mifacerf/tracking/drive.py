@@ -8,20 +8,19 @@ environment from one camera with the rendering API, composited over the environm
 
 ``DRIVE/`` (default ``TRACK/drive``)::
 
-    drive.json                       inputs, camera, per-frame timing, coherence, PSNR and the truth's
-                                     own noise floor (with --truth)
+    drive.json                       inputs, camera, per-frame timing, coherence (and what an observer
+                                     adds: the truth comparison's PSNR, see below)
     weights.npz                      weights (N, T, S) float16, the §5 weights rendered (filtered in time);
                                      weights_unsmoothed, frames (N,), expressions (S,)
     <env>/frames/F<frame:05d>.png    the composite, sRGB 8-bit
     <env>/frames/F<frame:05d>.exr    the render itself, RGBA half float (premultiplied, linear)
     <env>/performance.mp4            the composite as a video at the performance's frame rate
-    <env>/truth/F<frame:05d>.exr     (with --truth) the path-traced ground truth of the same frame
-    strip.png                        (with --truth) a strip of frames: ground truth above, render below
+    strip.png                        a strip of frames per environment (an observer's rows above)
 
-With ``truth`` (a ``mifacerf synth`` output folder), every frame is also path-traced from the
-performance's true parameters under the same environment and camera
-(:class:`mifacerf.synthetic.truth_scene.TruthRenderer`), and the per-frame PSNR over the face
-(pixels both images cover fully) and the same coherence measures on the truth are reported.
+An ``observer`` (:class:`FrameObserver`) sees the weights and every rendered frame and adds entries
+to ``drive.json`` and rows to the strip; driving itself never reads the synthetic truth. The
+comparison with the path-traced truth (``mifacerf evaluate drive``) is such an observer,
+:class:`mifacerf.evaluation.drive.TruthComparison`.
 """
 from __future__ import annotations
 
@@ -31,8 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import write_json_atomic
-from ..evaluation.metrics import psnr
+from ..formats.files import write_json_atomic
 from .coherence import PixelCoherence, weight_summary
 from .track import Track
 
@@ -67,15 +65,6 @@ def frame_parts(face, track: Track, f: int, base: dict) -> dict:
         if p in base:
             parts[p] = track.head_pose[f] @ base[p]
     return parts
-
-
-def face_pixels(truth_renderer, env, camera, truth_rgba: np.ndarray, render_rgba: np.ndarray) -> np.ndarray:
-    """The pixels the rendering measurement compares (mifacerf.evaluation): fully on modelled parts of the
-    posed truth (template skin, eyes, teeth) and fully covered by the render."""
-    from ..evaluation.masks import classify_pixels, face_mask
-
-    classes = classify_pixels(truth_renderer.scene(env), camera, spp=4)
-    return face_mask(classes) & (truth_rgba[..., 3] > 0.999) & (render_rgba[..., 3] > 0.999)
 
 
 def exposure_for(images) -> float:
@@ -122,13 +111,38 @@ def strip(rows: list[list[np.ndarray]], labels: list[str], exposure: float, path
     return Path(path)
 
 
+class FrameObserver:
+    """What :func:`drive` tells an observer while it renders (this base class does nothing).
+
+    :meth:`weights` once, with the §5 weights of the frames driven; then per environment :meth:`begin`,
+    :meth:`frame` after every rendered frame, :meth:`end`.
+    """
+
+    def weights(self, face, frames: list[int], W: np.ndarray) -> dict:
+        """Entries for ``drive.json``'s ``weights``; ``W`` (N, T, S) the weights rendered (filtered in time)."""
+        return {}
+
+    def begin(self, name: str, env, camera, folder: Path) -> None:
+        """Environment ``name`` starts; ``folder`` is its output folder (``DRIVE/<name>``)."""
+
+    def frame(self, f: int, rgba: np.ndarray, plate: np.ndarray, picked: bool) -> str | None:
+        """Frame ``f`` was rendered (RGBA, linear, premultiplied) over ``plate``; ``picked``: it is in the strip.
+        Returns a note for the progress bar, or None."""
+        return None
+
+    def end(self) -> tuple[dict, list[tuple[str, list]], str]:
+        """Entries for the environment in ``drive.json``, strip rows ``(label, composites)`` to show above
+        the render's row, and a note for the log line."""
+        return {}, [], ""
+
+
 def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: int | None = None, spp: int = 4,
-          truth=None, truth_spp: int = 64, frames=None, exr: bool = True, video: bool = True,
-          weight_sigma: float = 2.0, progress: bool = True, log=None) -> Path:
+          frames=None, exr: bool = True, video: bool = True, weight_sigma: float = 2.0, progress: bool = True,
+          log=None, observer: FrameObserver | None = None) -> Path:
     """Drive ``model`` with ``track``; returns the output folder (see the module docstring)."""
     from tqdm.auto import tqdm
 
-    from ..imageio import read_exr, to_srgb8, write_exr, write_png
+    from ..imageio import to_srgb8, write_exr, write_png
     from ..rendering.api import composite, environment_plate, load_model
 
     tr = track if isinstance(track, Track) else Track(track)
@@ -162,24 +176,13 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
                         frames=np.array(fl), expressions=np.array(face.expressions))
     os.replace(tmp, out / "weights.npz")
 
-    truth_r = truth_params = None
-    if truth is not None:
-        from ..synthetic.truth_scene import TruthRenderer
-        from .record import read_truth
-
-        truth_r = TruthRenderer.from_synth(truth)
-        truth_params = read_truth(truth)["params"]
-
     meta = {"format": FORMAT, "version": 1, "track": str(tr.root.resolve()), "model": str(Path(face.model.root).resolve()),
             "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1],
             "frame_step": fl[1] - fl[0] if n > 1 else 1, "fps": tr.fps, "spp": spp, "environments": {},
             "weights": {"seconds_per_frame": round(weights_s, 4), "temporal_sigma_frames": weight_sigma,
                         "coherence": weight_summary(W), "coherence_unsmoothed": weight_summary(W_raw)}}
-    if truth is not None:      # the same measure on the true meshes' weights
-        tv = read_truth(truth)["template_vertices"]
-        Wt = np.stack([face.target(mesh=tv[f])[1] for f in fl])
-        meta["weights"]["truth_coherence"] = weight_summary(Wt)
-        meta["weights"]["vs_truth_mean_tv"] = round(float((0.5 * np.abs(W - Wt).sum(-1)).mean()), 5)
+    if observer is not None:
+        meta["weights"].update(observer.weights(face, fl, W))
 
     base = {}
     if getattr(face.model, "references", None):
@@ -197,10 +200,11 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
         (edir / "frames").mkdir(parents=True, exist_ok=True)
         plate = environment_plate(env, cam)
         vw = VideoWriter(edir / "performance.mp4", tr.fps) if video else None
-        coh, coh_t = PixelCoherence(), PixelCoherence()
-        times = {"render": [], "composite_write": [], "truth": []}
-        scores = []
-        strip_r, strip_t = [], []
+        coh = PixelCoherence()
+        times = {"render": [], "composite_write": []}
+        strip_r = []
+        if observer is not None:
+            observer.begin(ename, env, cam, edir)
         bar = tqdm(total=n, desc=f"drive {ename}", unit="frame", disable=not progress)
         env_exposure = None
         for k, f in enumerate(fl):
@@ -220,27 +224,12 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
             t2 = time.perf_counter()
             times["render"].append(t1 - t0)
             times["composite_write"].append(t2 - t1)
-            if truth_r is not None:
-                tpath = edir / "truth" / f"F{f:05d}.exr"
-                t3 = time.perf_counter()
-                if tpath.exists():   # a resumed run: the truth is already path-traced
-                    gt = read_exr(tpath, channels=4)
-                    truth_r.scene(env).set_pose(truth_r.subject.pose(truth_params[f], textures=False))
-                else:
-                    tpath.parent.mkdir(parents=True, exist_ok=True)
-                    gt = truth_r.render(truth_params[f], cam, env, spp=truth_spp, seed=0)
-                    write_exr(tpath, gt)
-                times["truth"].append(time.perf_counter() - t3)
-                coh_t.add(gt)
-                m = face_pixels(truth_r, env, cam, gt, rgba)
-                scores.append(psnr(rgba, gt, m) if m.any() else float("nan"))
-                if f in picks:
-                    strip_t.append(composite(gt, plate))
+            note = observer.frame(f, rgba, plate, f in picks) if observer is not None else None
             if f in picks:
                 strip_r.append(rgb)
             bar.update(1)
-            if scores:
-                bar.set_postfix_str(f"PSNR {scores[-1]:.1f} dB")
+            if note:
+                bar.set_postfix_str(note)
         bar.close()
         if vw is not None:
             vw.close()
@@ -249,32 +238,14 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
              "write_seconds_per_frame": round(float(np.mean(times["composite_write"])), 4),
              "pixel_coherence": coh.summary(), "exposure": env_exposure,
              "video": str((edir / "performance.mp4").relative_to(out)) if video else None}
-        if scores:
-            # the truth's own noise: a second path-traced render of the first frame (another seed) against
-            # the first, + 3 dB = one render against the noise-free expectation (the PSNR ceiling)
-            gt2 = truth_r.render(truth_params[fl[0]], cam, env, spp=truth_spp, seed=1)
-            gt1 = read_exr(edir / "truth" / f"F{fl[0]:05d}.exr", channels=4)
-            truth_r.scene(env).set_pose(truth_r.subject.pose(truth_params[fl[0]], textures=False))
-            m = face_pixels(truth_r, env, cam, gt1, gt1)
-            e["truth_noise_psnr_db"] = round(float(psnr(gt2, gt1, m) + 10 * np.log10(2)), 3) if m.any() else None
-            s = np.asarray(scores)
-            e.update({"psnr_db": [round(float(x), 3) for x in s],
-                      "psnr_summary": {"mean": round(float(np.nanmean(s)), 3), "min": round(float(np.nanmin(s)), 3),
-                                       "median": round(float(np.nanmedian(s)), 3)},
-                      "truth_pixel_coherence": coh_t.summary(), "truth_spp": truth_spp,
-                      "truth_seconds_per_frame": round(float(np.mean(times["truth"])), 3)})
-            rows += [strip_t, strip_r]
-            labels += [f"truth {ename}", f"render {ename}"]
-        else:
-            rows.append(strip_r)
-            labels.append(f"render {ename}")
+        extra, above, note = observer.end() if observer is not None else ({}, [], "")
+        e.update(extra)
+        rows += [r for _, r in above] + [strip_r]
+        labels += [lab for lab, _ in above] + [f"render {ename}"]
         meta["environments"][ename] = e
         write_json_atomic(out / "drive.json", meta)
         if log:
-            msg = f"{ename}: {n} frames, render {e['render_seconds_per_frame']:.2f} s/frame"
-            if scores:
-                msg += f", PSNR mean {e['psnr_summary']['mean']:.2f} dB (min {e['psnr_summary']['min']:.2f})"
-            log(msg)
+            log(f"{ename}: {n} frames, render {e['render_seconds_per_frame']:.2f} s/frame" + note)
     if rows:
         strip(rows, labels, exposure or 1.0, out / "strip.png")
         meta["strip"] = "strip.png"

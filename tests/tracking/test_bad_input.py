@@ -24,9 +24,9 @@ def _track(perf, out):
 
 
 def _err_px(tr, world):
-    from mifacerf.tracking.evaluate import footprint
-    from mifacerf.tracking.folder import PerformanceFolder
-    from mifacerf.tracking.record import read_truth
+    from mifacerf.geometry.footprint import centre_footprint as footprint
+    from mifacerf.formats.performance import PerformanceFolder
+    from mifacerf.synthetic.recording import read_truth
 
     t = read_truth(world["out"])["template_vertices"][:, tr.dot_ids]
     return np.linalg.norm(tr.dots - t, axis=-1) / footprint(PerformanceFolder(world["perf"]).cameras)
@@ -81,8 +81,8 @@ def test_camera_goes_dark(world, tmp_path):
 
 
 def test_dot_lost_for_many_frames_is_marked_and_recovered(world, tmp_path):
-    from mifacerf.tracking.folder import PerformanceFolder
-    from mifacerf.tracking.record import read_truth
+    from mifacerf.formats.performance import PerformanceFolder
+    from mifacerf.synthetic.recording import read_truth
 
     clean = world["track"]
     pf = PerformanceFolder(world["perf"])

@@ -1,4 +1,5 @@
-"""Driving the model with the track: weights, relit renders, composites, video, coherence, PSNR."""
+"""Driving the model with the track: weights, relit renders, composites, video, coherence; and its PSNR
+against the path-traced truth (mifacerf.evaluation.drive, an observer of the drive)."""
 import json
 
 import numpy as np
@@ -10,7 +11,7 @@ N = FRAMES[1] - FRAMES[0]
 
 @pytest.fixture(scope="module")
 def driven(world, tmp_path_factory):
-    from mifacerf.tracking.drive import drive
+    from mifacerf.evaluation.drive import evaluate_drive
 
     out = tmp_path_factory.mktemp("drive")
     drive(world["track"], world["model"], out, envs=("sky", "interior"), size=64, spp=2, truth=world["out"],
@@ -59,7 +60,7 @@ def test_a_wrong_track_scores_worse(driven, world, tmp_path):
     """The measurement can fail: the same frames driven by a mesh 8 mm off score lower."""
     import shutil
 
-    from mifacerf.tracking.drive import drive
+    from mifacerf.evaluation.drive import evaluate_drive
     from mifacerf.tracking.track import Track
 
     bad = tmp_path / "badtrack"
@@ -93,31 +94,44 @@ def test_coherence_measures_detect_flicker():
 
 
 def test_drive_cli(world, tmp_path):
+    """``mifacerf drive`` renders without reading the truth; ``mifacerf evaluate drive`` adds the comparison."""
     from click.testing import CliRunner
+    from openwatch import watch_opens
 
     from mifacerf.cli import main
 
-    r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "-o",
-                                  str(tmp_path / "d"), "--env", "gradient", "--frames", "3", "--size", "48",
-                                  "--spp", "1", "--no-exr"])
+    with watch_opens(world["out"] / "truth") as opened:
+        r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "-o",
+                                      str(tmp_path / "d"), "--env", "gradient", "--frames", "3", "--size", "48",
+                                      "--spp", "1", "--no-exr"])
     assert r.exit_code == 0, r.output
+    assert opened == [], "drive opened ground-truth files"
     assert len(list((tmp_path / "d" / "gradient" / "frames").glob("*.png"))) == 3
     assert (tmp_path / "d" / "gradient" / "performance.mp4").exists()
+    meta = json.loads((tmp_path / "d" / "drive.json").read_text())
+    assert "psnr_db" not in meta["environments"]["gradient"] and not (tmp_path / "d" / "gradient" / "truth").exists()
+    r = CliRunner().invoke(main, ["evaluate", "drive", str(world["out"]), str(world["track"].root), "--model",
+                                  str(world["model"]), "-o", str(tmp_path / "e"), "--env", "gradient", "--frames",
+                                  "1", "--size", "32", "--spp", "1", "--truth-spp", "4", "--no-exr"])
+    assert r.exit_code == 0, r.output
+    meta = json.loads((tmp_path / "e" / "drive.json").read_text())
+    assert len(meta["environments"]["gradient"]["psnr_db"]) == 1 and "PSNR mean" in r.output
     r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "--env",
                                   "no-such-env", "--frames", "1"])
     assert r.exit_code != 0
 
 
 def test_demo_performance_stage(world, tmp_path):
-    """``mifacerf demo``'s hook: reuses the recorded performance, tracks, drives, returns its metrics."""
+    """``mifacerf demo``'s performance stage: reuses the recorded performance, tracks, drives, compares the
+    track with the truth, returns its metrics."""
     import shutil
 
-    from mifacerf.tracking.demo import run_performance
+    from mifacerf.demo import stage_performance
 
     out = tmp_path / "demo"
     for name in ("capture", "truth", "performance"):
         shutil.copytree(world["out"] / name, out / name, ignore=shutil.ignore_patterns("track", "images", "cache"))
-    m = run_performance(out, world["model"], env="gradient")
+    m = stage_performance(out, world["model"], env="gradient")
     assert m["frames"] == 24 and m["dot_error_px"]["median"] < 0.5
     assert m["tracking_seconds_per_frame"] > 0 and m["render_seconds_per_frame"] > 0
     assert (out / "performance_render" / "gradient" / "performance.mp4").exists()

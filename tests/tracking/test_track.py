@@ -10,7 +10,7 @@ from openwatch import watch_opens
 
 
 def test_clean_track_against_truth(world):
-    from mifacerf.tracking.evaluate import evaluate_track
+    from mifacerf.evaluation.tracking import evaluate_track
 
     tr = world["track"]
     n, T = tr.n_frames, tr.vertices.shape[1]
@@ -51,7 +51,7 @@ def test_tracking_reads_only_the_performance_folder(world, tmp_path):
 
 
 def test_smoothing_reduces_jitter_without_bias(world, tmp_path):
-    from mifacerf.tracking.evaluate import evaluate_track
+    from mifacerf.evaluation.tracking import evaluate_track
     from mifacerf.tracking.track import Track, track_performance
     from mifacerf.tracking.track3d import Options
 
@@ -72,11 +72,15 @@ def test_track_cli_and_errors(world, tmp_path):
     from mifacerf.cli import main
 
     r = CliRunner().invoke(main, ["track", str(world["perf"]), "-o", str(tmp_path / "t"), "--frames", "6",
-                                  "--model", str(world["model"]),
-                                  "--overlay", "5", "--evaluate", str(world["out"])])
+                                  "--model", str(world["model"]), "--overlay", "5"])
     assert r.exit_code == 0, r.output
-    assert (tmp_path / "t" / "track.npz").exists() and (tmp_path / "t" / "evaluation.json").exists()
+    assert (tmp_path / "t" / "track.npz").exists() and not (tmp_path / "t" / "evaluation.json").exists()
     assert len(list((tmp_path / "t").glob("overlay_F00005_*.png"))) == 3
+    # the comparison with the truth (and the overlays with the true dots) is the evaluation's
+    r = CliRunner().invoke(main, ["evaluate", "tracking", str(world["out"]), str(tmp_path / "t"), "--overlay", "4"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "t" / "evaluation.json").exists() and "dot error" in r.output
+    assert len(list((tmp_path / "t").glob("overlay_F00004_*.png"))) == 3
     # not a performance folder / a missing template: clear errors
     r = CliRunner().invoke(main, ["track", str(tmp_path)])
     assert r.exit_code != 0 and "manifest.json" in r.output

@@ -1,5 +1,7 @@
 """Tracking against the synthetic truth (evaluation only: tracking itself never reads truth).
 
+``mifacerf evaluate tracking OUT [TRACK] [--overlay F]``.
+
 :func:`evaluate_track` compares a track folder with ``OUT/truth/performance`` and reports, in
 **pixel footprints** (the size of one video pixel at the rig centre) unless stated otherwise:
 
@@ -22,29 +24,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import write_json_atomic
-from .record import read_truth
-from .track import Track
+from ..formats.files import write_json_atomic
+from ..geometry.footprint import centre_footprint
+from ..stats import median_p95
+from ..synthetic.recording import read_truth
+from ..tracking.track import Track
 
 
 def _stats(x) -> dict:
-    x = np.asarray(x, np.float64).ravel()
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {"median": None, "p95": None, "n": 0}
-    return {"median": round(float(np.median(x)), 4), "p95": round(float(np.percentile(x, 95)), 4),
-            "max": round(float(x.max()), 4), "n": int(x.size)}
-
-
-def footprint(cameras) -> float:
-    return float(np.median([c.pixel_footprint(np.linalg.norm(c.centre)) for c in cameras]))
+    """Median, p95, max (rounded to 4 decimals) and count of the finite values."""
+    return median_p95(x, with_max=True)
 
 
 def truth_visibility(truth, params: np.ndarray, points: np.ndarray, cameras, min_cos: float, tol: float) -> np.ndarray:
     """(N, C, D) whether each camera sees each dot (``points`` (N, D, 3)) on the true skin of every frame."""
     from scipy.spatial import cKDTree
 
-    from ..rendering.meshscene import MeshScene
+    from ..geometry.meshscene import MeshScene
     from ..synthetic.synth import load_subject
 
     folder = None
@@ -72,14 +68,14 @@ def truth_visibility(truth, params: np.ndarray, points: np.ndarray, cameras, min
 
 def evaluate_track(track, truth, write: bool = True, coverage: bool = True) -> dict:
     """Compare a track (folder or :class:`Track`) with the performance truth (``OUT`` or its truth folder)."""
+    from ..formats.performance import PerformanceFolder
     from ..registration.hand import Template
-    from .folder import PerformanceFolder
 
     tr = track if isinstance(track, Track) else Track(track)
     tru = read_truth(truth)
     perf = PerformanceFolder(tr.performance)
     tpl = Template.from_dict(perf.template())
-    fp = footprint(perf.cameras)
+    fp = centre_footprint(perf.cameras)
     n = tr.n_frames
     dots = tr.dot_ids
     Xt = tru["template_vertices"][:n, dots]
@@ -139,37 +135,10 @@ def evaluate_track(track, truth, write: bool = True, coverage: bool = True) -> d
 
 
 def overlay(track, frame: int, camera: str, path, truth=None, scale: int = 3) -> Path:
-    """A picture of one frame with the tracked dots: green = tracked (used in this camera), red =
-    untracked (at its filled-in position), blue crosses = the truth (when given)."""
-    import cv2
-
-    from ..imageio import to_srgb8, write_png
-    from .folder import PerformanceFolder
+    """:func:`mifacerf.tracking.overlay.overlay` with the true dot centres of ``frame`` (blue crosses) when
+    ``truth`` (a ``mifacerf synth`` output or its performance truth folder) is given."""
+    from ..tracking.overlay import overlay as draw
 
     tr = track if isinstance(track, Track) else Track(track)
-    perf = PerformanceFolder(tr.performance)
-    c = perf.camera_names.index(camera)
-    cam = perf.cameras[c]
-    img = perf.read(camera, frame)
-    img = np.zeros((cam.height, cam.width, 3), np.float32) if img is None else img
-    big = cv2.resize(to_srgb8(img, 1.5), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-    big = np.ascontiguousarray(big)
-    uv_used = tr.uv[frame, c]
-    proj = cam.project(tr.dots[frame])[0]
-    if truth is not None:
-        tt = read_truth(truth)["template_vertices"][frame, tr.dot_ids]
-        for u, v in cam.project(tt)[0]:
-            if np.isfinite(u):
-                cv2.drawMarker(big, (int(round((u + 0.5) * scale - 0.5)), int(round((v + 0.5) * scale - 0.5))),
-                               (80, 120, 255), cv2.MARKER_CROSS, 2 * scale, 1)
-    for d in range(len(proj)):
-        used = np.isfinite(uv_used[d]).all()
-        tracked = tr.dot_status[frame, d] == 1
-        u, v = uv_used[d] if used else proj[d]
-        if not np.isfinite(u):
-            continue
-        colour = (60, 230, 60) if (tracked and used) else ((230, 200, 60) if tracked else (255, 40, 40))
-        cv2.circle(big, (int(round((u + 0.5) * scale - 0.5)), int(round((v + 0.5) * scale - 0.5))),
-                   max(2, scale), colour, 1)
-    write_png(path, big)
-    return Path(path)
+    marks = None if truth is None else read_truth(truth)["template_vertices"][frame, tr.dot_ids]
+    return draw(tr, frame, camera, path, marks=marks, scale=scale)
