@@ -18,6 +18,8 @@ LAZY_COMMANDS = {
               "Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."),
     "truth": ("mifacerf.synthetic.cli:truth_cmd",
               "Path-trace the synthetic subject of OUT (any expression, camera, environment) with alpha."),
+    "preview": ("mifacerf.synthetic.preview:preview_cmd",
+                "Look at the synthetic subject: a contact sheet of its expressions (no capture needed)."),
     "build": ("mifacerf.rendering.cli:build_cmd",
               "Assemble the relightable morphable model from a registered capture."),
     "render": ("mifacerf.rendering.cli:render_cmd",

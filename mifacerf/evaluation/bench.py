@@ -24,6 +24,7 @@ import sys
 import time
 from pathlib import Path
 
+import click
 import numpy as np
 
 
@@ -225,4 +226,13 @@ def plot(report: dict, path: Path) -> None:
 
 
 if __name__ == "__main__":
-    worker(sys.argv[1], sys.argv[2])
+    worker_cmd()
+@click.command("bench-worker")
+@click.argument("job", type=click.Path(exists=True, dir_okay=False))
+@click.argument("config")
+def worker_cmd(job, config):
+    """Render the frames of a bench JOB (job.json) with one CONFIG: the worker process of ``mifacerf bench``
+    (``python -m mifacerf.evaluation.bench JOB CONFIG``)."""
+    worker(job, config)
+
+

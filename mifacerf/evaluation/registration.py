@@ -261,4 +261,3 @@ def pictures(capture, truth, registration, folder, expression: str, crop: int | 
         write_png(path, grid(tiles, 3))
         written.append(path)
     return written
-

@@ -2,9 +2,9 @@
 
 ::
 
-    python -m mifacerf.synthetic.preview                       # draft preset -> synthetic_subject.png
-    python -m mifacerf.synthetic.preview --preset paper --res 160 --out /tmp/sheet.png
-    python -m mifacerf.synthetic.preview --names smile,viseme_aa --view close
+    mifacerf preview                                    # draft preset -> synthetic_subject.png
+    mifacerf preview --preset paper --res 160 --out /tmp/sheet.png
+    mifacerf preview --names smile,viseme_aa --view close
 
 Rendering: Mitsuba perspective camera, ``path`` integrator with ``max_depth=2`` (direct light with
 shadows, like the light stage), a dim constant environment plus a key and a fill directional light;
@@ -12,10 +12,10 @@ sRGB-encoded PNG with each tile labelled by the expression's name.
 """
 from __future__ import annotations
 
-import argparse
-
+import click
 import numpy as np
 
+from ..imageio import to_srgb8
 from ..variant import ensure_variant
 
 VIEWS = {
@@ -29,12 +29,6 @@ LIGHTS = {
     "key": {"type": "directional", "direction": [-0.35, -0.55, -1.0], "irradiance": {"type": "rgb", "value": 2.4}},
     "fill": {"type": "directional", "direction": [0.8, -0.1, -0.6], "irradiance": {"type": "rgb", "value": 0.7}},
 }
-
-
-def srgb8(img):
-    img = np.clip(np.asarray(img, np.float64), 0.0, None)
-    s = np.where(img <= 0.0031308, 12.92 * img, 1.055 * np.power(img, 1 / 2.4) - 0.055)
-    return (np.clip(s, 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
 def render_pose(scene, view="front", res=192, spp=32, seed=0):
@@ -60,7 +54,7 @@ def contact_sheet(subject, expressions, path, view="front", res=192, spp=32, col
     tiles = []
     for e in expressions:
         scene.set_pose(subject.pose(e.params))
-        im = Image.fromarray(srgb8(render_pose(scene, view, res, spp)))
+        im = Image.fromarray(to_srgb8(render_pose(scene, view, res, spp)))
         ImageDraw.Draw(im).text((4, 2), e.name, fill=(255, 255, 255))
         tiles.append(im)
     rows = (len(tiles) + cols - 1) // cols
@@ -71,25 +65,21 @@ def contact_sheet(subject, expressions, path, view="front", res=192, spp=32, col
     return path
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--preset", default="draft", help="tiny | draft | paper")
-    ap.add_argument("--names", default=None, help="comma-separated expression names (from the paper list)")
-    ap.add_argument("--view", default="front", choices=sorted(VIEWS))
-    ap.add_argument("--res", type=int, default=192)
-    ap.add_argument("--spp", type=int, default=32)
-    ap.add_argument("--cols", type=int, default=6)
-    ap.add_argument("--out", default="synthetic_subject.png")
-    a = ap.parse_args(argv)
+@click.command("preview")
+@click.option("--preset", default="draft", show_default=True, help="tiny | draft | paper")
+@click.option("--names", default=None, help="Comma-separated expression names (from the paper list).")
+@click.option("--view", default="front", show_default=True, type=click.Choice(sorted(VIEWS)))
+@click.option("--res", type=int, default=192, show_default=True)
+@click.option("--spp", type=int, default=32, show_default=True)
+@click.option("--cols", type=int, default=6, show_default=True)
+@click.option("--out", default="synthetic_subject.png", show_default=True, type=click.Path(dir_okay=False))
+def preview_cmd(preset, names, view, res, spp, cols, out):
+    """Look at the synthetic subject: a contact sheet of its expressions (no capture needed)."""
     from .subject import default_subject
 
     subj = default_subject()
-    ex = subj.presets(a.preset)
-    if a.names:
+    ex = subj.presets(preset)
+    if names:
         by = {e.name: e for e in subj.presets("paper")}
-        ex = [by[n] for n in a.names.split(",")]
-    print(contact_sheet(subj, ex, a.out, a.view, a.res, a.spp, a.cols))
-
-
-if __name__ == "__main__":
-    main()
+        ex = [by[n] for n in names.split(",")]
+    click.echo(contact_sheet(subj, ex, out, view, res, spp, cols))
