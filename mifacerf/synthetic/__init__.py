@@ -12,7 +12,9 @@ Modules: :mod:`.head` (geometry), :mod:`.expressions` (controls and deformation)
 normal map, wrinkles), :mod:`.dots` (fiducials), :mod:`.template` (registration template),
 :mod:`.presets` (captured expressions), :mod:`.subject` (the subject and its poses),
 :mod:`.scene` (Mitsuba scene), :mod:`.mesh_subject` (a user's own blendshape meshes),
-:mod:`.preview` (contact sheets of its expressions: ``mifacerf preview --preset draft``).
+:mod:`.preview` (contact sheets of its expressions: ``mifacerf preview --preset draft``),
+:mod:`.performance` (a scripted facial performance: the trajectory), :mod:`.recording` (its
+multi-view video, truth and keyframe marks: ``mifacerf synth OUT --performance SECONDS``).
 Expensive build steps are cached under ``$MIFACERF_CACHE`` (default ``~/.cache/mifacerf``).
 """
 from .expressions import CONTROLS, Control

@@ -30,7 +30,7 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
         cap = Path(out) / "capture" if reuse else synthesize(
             out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite)
         if performance is not None:
-            from ..tracking.record import record_performance
+            from .recording import record_performance
 
             click.echo(f"performance written to {record_performance(out, performance, size=performance_size)}")
     except (CaptureError, ValueError, OSError) as exc:

@@ -60,7 +60,7 @@ def world(tmp_path_factory):
     from mifacerf.rendering.build import build_model
     from mifacerf.rig import LightStage, Rig
     from mifacerf.synthetic.synth import synthesize
-    from mifacerf.tracking.record import record_performance
+    from mifacerf.synthetic.recording import record_performance
     from mifacerf.tracking.track import Track, track_performance
 
     out = tmp_path_factory.mktemp("world")

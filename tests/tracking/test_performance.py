@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mifacerf.synthetic.expressions import CONTROLS, default_params
-from mifacerf.tracking.performance import LEAD_IN, blend_residual, script
+from mifacerf.synthetic.performance import LEAD_IN, blend_residual, script
 
 
 def _col(sc, name):
@@ -55,7 +55,7 @@ def test_bad_lengths_are_refused():
 
 def test_recorded_performance_folder_and_truth(world):
     from mifacerf.tracking.folder import PerformanceFolder
-    from mifacerf.tracking.record import read_truth
+    from mifacerf.synthetic.recording import read_truth
 
     perf = PerformanceFolder(world["perf"])
     assert perf.n_frames == 24 and perf.fps == 60.0 and len(perf.cameras) == 3

@@ -10,7 +10,7 @@ the light-stage capture:
   (:func:`render_lit`), so the video has no Monte-Carlo noise, only the pixel filter's
   anti-aliasing and a video camera's read and shot noise (:func:`sensor_noise`); the fiducial
   dots are left on;
-* ``OUT/performance/`` gets the frames and the hand inputs (:mod:`.folder`);
+* ``OUT/performance/`` gets the frames and the hand inputs (:mod:`mifacerf.formats.performance`);
 * ``OUT/truth/performance/`` gets the truth: ``performance.json`` (controls, the script's events,
   keyframe choice) and ``frames.npz`` — ``params`` (N, P), ``template_vertices`` (N, T, 3), ``dots``
   (N, D, 3), ``head`` (N, 4, 4), ``eyes`` (N, 2, 4, 4) (left, right eyeball rest → world), ``jaw``
@@ -36,8 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..capture_folder import write_json_atomic
-from .folder import PerformanceWriter
+from ..formats.files import write_json_atomic
+from ..formats.performance import PerformanceWriter
 from ..geometry.footprint import centre_footprint
 from .performance import Script, script as make_script
 
@@ -70,7 +70,7 @@ _RAYS: dict = {}
 
 def _camera_rays(camera: Camera, spp: int, seed: int):
     """The camera's primary rays, cached: a video camera samples the same sub-pixel pattern every frame."""
-    from ..synthetic.olat import camera_rays
+    from .olat import camera_rays
 
     key = (camera.name, camera.width, camera.height, tuple(np.round(camera.K.ravel(), 9)),
            tuple(np.round(camera.R.ravel(), 12)), tuple(np.round(camera.t, 12)), spp, seed)
@@ -135,7 +135,7 @@ def render_frame(scene, camera: Camera, lighting: dict, spp: int, seed: int) -> 
     if lighting["type"] == "studio":
         return render_lit(scene, camera, np.asarray(lighting["directions"]), np.asarray(lighting["irradiance"]),
                           spp=spp, seed=seed)
-    from ..synthetic.truth import render_truth
+    from .truth import render_truth
 
     return render_truth(scene, camera, spp=spp, seed=seed)[..., :3]
 
@@ -214,8 +214,8 @@ def choose_keyframes(truth: dict, template, fps: float, footprint: float, lead_i
 def keyframe_marks(subject, params: np.ndarray, keys: dict, cameras: list[Camera], seed: int = 0) -> dict:
     """Rotoscope dicts {frame: mifacerf.rotoscope} made by the synthetic user at the keyframes only."""
     from ..rig import LightStage, Rig
-    from ..synthetic.hand_inputs import write_hand_inputs
-    from ..synthetic.presets import Expression
+    from .hand_inputs import write_hand_inputs
+    from .presets import Expression
 
     wanted: dict[int, set] = {}
     for kind, curves in (("lips", LIP_CURVES), ("eyelids", LID_CURVES), ("irises", IRIS_CURVES)):
@@ -292,8 +292,8 @@ def record_performance(out, seconds: float = 2.0, fps: float = 60.0, size: int |
     """
     from tqdm.auto import tqdm
 
-    from ..synthetic import SubjectScene
-    from ..synthetic.synth import load_subject
+    from . import SubjectScene
+    from .synth import load_subject
 
     out = Path(out)
     cap = out / "capture"
@@ -301,7 +301,7 @@ def record_performance(out, seconds: float = 2.0, fps: float = 60.0, size: int |
         if not (cap / "manifest.json").exists():
             raise FileNotFoundError(f"{cap}: no capture here; record the light-stage capture first "
                                     "(mifacerf synth OUT) or pass cameras and a template")
-        from ..capture_folder import Capture
+        from ..formats.capture import Capture
 
         capture = Capture(cap)
         cameras = cameras or list(capture.rig.cameras)
