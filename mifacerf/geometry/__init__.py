@@ -8,6 +8,7 @@ there is a published one):
 - :mod:`.footprint`: the size of one pixel at the rig centre (metres per pixel).
 - :mod:`.horn1987`: closed-form absolute orientation (rigid fit of two point sets), Horn (1987).
 - :mod:`.triangulate`: multi-view triangulation through calibrated, distorted cameras.
+- :mod:`.schaefer2006`: moving-least-squares affine deformation of points by anchors, Schaefer et al. (2006).
 - :mod:`.rigid`: rigid transforms as 4 × 4 matrices (apply, rotation angle, least-squares and robust fits).
 - :mod:`.maxima`: 3 × 3 local maxima of a 2-D map (dot-strength maps).
 - :mod:`.margins`: lip and eyelid margins of a template mesh from its hole loops.

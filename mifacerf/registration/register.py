@@ -42,7 +42,7 @@ from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS, Inpainter, d
 from .dots import DotFilter, face_mask, peak_near
 from .hand import HandInputs, Template, read_hand_inputs
 from .overrides import fixed_positions
-from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances, mls_affine
+from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances
 from .proxies import proxies_for
 from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
@@ -50,6 +50,7 @@ from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, s
 from .texcoords import texture_coordinates
 from ..geometry.footprint import centre_footprint
 from ..geometry.maxima import local_maxima
+from ..geometry.schaefer2006 import mls_affine
 from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, rotation_angle_deg
 from ..geometry.triangulate import triangulate
 from .visibility import Visibility

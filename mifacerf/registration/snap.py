@@ -251,12 +251,12 @@ def predict_from_neighbours(pred, X, in_S, ids, neighbours, rings2, max_anchors:
     """Start positions of points ``ids``: their prediction corrected by the snapped points round them.
 
     The paper averages the neighbours' offsets; here the snapped points within two rings give a
-    weighted local affine map (regularised towards rigid, :func:`.morph.local_affine`) from
+    weighted local affine map (regularised towards rigid, :func:`mifacerf.geometry.schaefer2006.local_affine`) from
     predicted to snapped positions, so a rotating or stretching region (a jaw opening) carries its
     first-order motion to the next point, not only its mean translation. With fewer than three
     such points, the mean offset of the snapped neighbours (the paper's rule).
     """
-    from .morph import local_affine
+    from ..geometry.schaefer2006 import local_affine
 
     M = len(ids)
     src = np.zeros((M, max_anchors, 3))

@@ -26,7 +26,7 @@ from ..camera import Camera
 from ..geometry.rigid import apply as apply_T
 from ..registration import eyes_teeth as ET
 from ..registration.contours import relax_margin
-from ..registration.morph import mls_affine
+from ..geometry.schaefer2006 import mls_affine
 
 LIP_MARGINS = ("lip_upper", "lip_lower")
 LID_MARGINS = ("lid_upper_L", "lid_lower_L", "lid_upper_R", "lid_lower_R")

@@ -33,7 +33,7 @@ import numpy as np
 from ..capture_folder import write_json_atomic
 from ..registration.contours import propagate, rings
 from ..registration.hand import Template, read_hand_inputs
-from ..registration.morph import mls_affine
+from ..geometry.schaefer2006 import mls_affine
 from ..stats import median_p95
 from . import health as HL
 from .folder import PerformanceFolder

@@ -7,7 +7,7 @@ allows us to triangulate 3D motion data"):
    its last two tracked positions (time gaps from dropped frames included); a dot unseen for more
    than ``max_gap`` frames is *lost* and predicted from the motion of its tracked neighbours
    instead (a moving-least-squares affine map of the reference positions onto this frame's
-   predictions, :func:`mifacerf.registration.morph.mls_affine`);
+   predictions, :func:`mifacerf.geometry.schaefer2006.mls_affine`);
 2. **visibility** of the predicted positions in every camera, ray-traced against the predicted
    template mesh (occlusion by the nose, the head's turn) with a facing test;
 3. **search** in every usable camera (:mod:`.health`) about the projected prediction — a small
@@ -32,11 +32,11 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..camera import Camera
-from ..registration.morph import mls_affine
 from ..registration.snap import dot_graph
 from ..geometry.footprint import centre_footprint
 from ..geometry.maxima import maxima_points
 from ..geometry.rigid import apply as apply_T, robust_rigid
+from ..geometry.schaefer2006 import mls_affine
 from ..geometry.triangulate import triangulate
 from ..registration.visibility import Visibility
 from .track2d import Detector, resolve_conflicts, search

@@ -4,8 +4,9 @@ import pytest
 from scipy.spatial import Delaunay
 from scipy.spatial.transform import Rotation
 
+from mifacerf.geometry.schaefer2006 import mls_affine
 from mifacerf.registration.morph import (CoarseMorph, choose_references, coarse_neighbourhoods,
-                                         deformation_distances, mls_affine, point_triangle_distance)
+                                         deformation_distances, point_triangle_distance)
 
 
 @pytest.fixture(scope="module")
