@@ -225,8 +225,6 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
-if __name__ == "__main__":
-    worker_cmd()
 @click.command("bench-worker")
 @click.argument("job", type=click.Path(exists=True, dir_okay=False))
 @click.argument("config")
@@ -236,3 +234,5 @@ def worker_cmd(job, config):
     worker(job, config)
 
 
+if __name__ == "__main__":
+    worker_cmd()

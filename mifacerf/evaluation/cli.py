@@ -137,6 +137,11 @@ def blending_speed_cmd(vertices, sources, frames, threads, json_path):
     """Time the §5 weights: the Dr.Jit evaluator against the NumPy/SciPy reference (toy sheet)."""
     from ..blending.benchmark import run
 
+    out = run(vertices, sources, frames, threads=threads)
+    if json_path:
+        with open(json_path, "w", encoding="utf-8") as f:
+            json.dump(out, f, indent=1)
+
 
 @evaluate_group.command("tracking", short_help="A track against the true performance.")
 @click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
@@ -176,8 +181,3 @@ def drive_cmd(synth_out, track, truth_spp, **options):
         return evaluate_drive(track, model, synth_out, out, truth_spp=truth_spp, **keywords)
 
     run_drive(drive, track, **options)
-
-    out = run(vertices, sources, frames, threads=threads)
-    if json_path:
-        with open(json_path, "w", encoding="utf-8") as f:
-            json.dump(out, f, indent=1)
