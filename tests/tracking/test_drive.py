@@ -14,8 +14,8 @@ def driven(world, tmp_path_factory):
     from mifacerf.evaluation.drive import evaluate_drive
 
     out = tmp_path_factory.mktemp("drive")
-    drive(world["track"], world["model"], out, envs=("sky", "interior"), size=64, spp=2, truth=world["out"],
-          truth_spp=32, frames=FRAMES, progress=False)
+    evaluate_drive(world["track"], world["model"], world["out"], out, truth_spp=32, envs=("sky", "interior"),
+                   size=64, spp=2, frames=FRAMES, progress=False)
     return out
 
 
@@ -68,8 +68,8 @@ def test_a_wrong_track_scores_worse(driven, world, tmp_path):
     z = dict(np.load(bad / "track.npz"))
     z["vertices"] = z["vertices"] + np.array([0.008, 0.0, 0.0])
     np.savez(bad / "track.npz", **z)
-    out = drive(Track(bad), world["model"], tmp_path / "d", envs=("sky",), size=64, spp=2, truth=world["out"],
-                truth_spp=32, frames=(10, 12), progress=False, exr=False, video=False)
+    out = evaluate_drive(Track(bad), world["model"], world["out"], tmp_path / "d", truth_spp=32, envs=("sky",),
+                         size=64, spp=2, frames=(10, 12), progress=False, exr=False, video=False)
     good = json.loads((driven / "drive.json").read_text())["environments"]["sky"]["psnr_db"][:2]
     worse = json.loads((out / "drive.json").read_text())["environments"]["sky"]["psnr_db"]
     assert np.mean(worse) < np.mean(good) - 1.0, (worse, good)
