@@ -35,7 +35,7 @@ from ..registration.dots import DotFilter, peak_near
 from ..geometry.rigid import rotation_angle_deg
 from ..registration.hand import Template
 from ..registration.proxies import cone_weights, proxies_for
-from ..registration.visibility import Visibility
+from ..geometry.visibility import Visibility
 from ..stats import median_p95
 
 

@@ -10,6 +10,7 @@ there is a published one):
 - :mod:`.triangulate`: multi-view triangulation through calibrated, distorted cameras.
 - :mod:`.schaefer2006`: moving-least-squares affine deformation of points by anchors, Schaefer et al. (2006).
 - :mod:`.rigid`: rigid transforms as 4 × 4 matrices (apply, rotation angle, least-squares and robust fits).
+- :mod:`.visibility`: per-vertex visibility of a mesh from the cameras (ray-traced, facing test).
 - :mod:`.maxima`: 3 × 3 local maxima of a 2-D map (dot-strength maps).
 - :mod:`.margins`: lip and eyelid margins of a template mesh from its hole loops.
 - :mod:`.meshscene`: a triangle mesh in its own Mitsuba scene for ray casting (visibility).

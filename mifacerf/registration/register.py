@@ -53,7 +53,7 @@ from ..geometry.maxima import local_maxima
 from ..geometry.schaefer2006 import mls_affine
 from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, rotation_angle_deg
 from ..geometry.triangulate import triangulate
-from .visibility import Visibility
+from ..geometry.visibility import Visibility
 from ..stats import median_p95
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import Camera
-from .visibility import Visibility
+from ..geometry.visibility import Visibility
 
 
 def texture_coordinates(V: np.ndarray, cams: list[Camera], vis: Visibility) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ from ..geometry.maxima import maxima_points
 from ..geometry.rigid import apply as apply_T, robust_rigid
 from ..geometry.schaefer2006 import mls_affine
 from ..geometry.triangulate import triangulate
-from ..registration.visibility import Visibility
+from ..geometry.visibility import Visibility
 from .track2d import Detector, resolve_conflicts, search
 
 

@@ -8,7 +8,7 @@ import pytest
 from mifacerf.capture_folder import Capture
 from mifacerf.registered import Registration
 from mifacerf.registration import RegistrationInputError, register_capture
-from mifacerf.registration.visibility import Visibility
+from mifacerf.geometry.visibility import Visibility
 
 from . import toy
 from .conftest import errors_px

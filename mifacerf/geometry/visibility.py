@@ -1,7 +1,7 @@
 """Per-vertex visibility of a template mesh from the cameras, ray-traced with Mitsuba.
 
 A vertex is visible from a camera when it projects inside the image, the segment to the
-camera centre does not hit the mesh (:meth:`MeshScene.visible_from`), and the surface
+camera centre does not hit the mesh (:meth:`.meshscene.MeshScene.visible_from`), and the surface
 faces the camera by more than ``min_cos`` (the cosine between the vertex normal and the
 direction to the camera): dots seen at grazing angles are foreshortened into streaks and
 left out of the dot strength.
