@@ -132,7 +132,7 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
             operator = _ConsoleOperator()
         with controller:
             try:
-                rep = session.run(controller, cameras, operator, progress=_echo)
+                rep = session.run(controller, cameras, operator, log=_echo)
             except SessionInterrupted as exc:
                 raise Interrupted(str(exc)) from exc
             except (SessionError, ControllerError) as exc:
@@ -241,7 +241,7 @@ def render_boards_cmd(out, preset, resolution, views, board_spec, spp, tilt, see
 
     rig = _rig_from_options(preset, resolution)
     write_board_dataset(out, rig.cameras, _parse_board(board_spec), n_views=views, spp=spp, tilt_deg=tilt, seed=seed,
-                        progress=lambda c: _echo(f"rendered {c}"))
+                        log=lambda c: _echo(f"rendered {c}"))
     _echo(f"wrote {views} views x {len(rig.cameras)} cameras to {out}")
 
 
@@ -343,7 +343,7 @@ def render_charts_cmd(out, preset, resolution, sensor, seed):
     rig = _rig_from_options(preset, resolution)
     sensors = {c.name: (SensorModel.realistic(seed=seed * 100 + i) if sensor == "realistic" else SensorModel())
                for i, c in enumerate(rig.cameras)}
-    write_chart_dataset(out, rig, sensors, progress=lambda c: _echo(f"rendered {c}"))
+    write_chart_dataset(out, rig, sensors, log=lambda c: _echo(f"rendered {c}"))
     _echo(f"wrote chart captures to {out}")
 
 

@@ -345,8 +345,9 @@ class CaptureSession:
 
     # --------------------------------------------------------------------- run
     def run(self, controller: StrobeController, cameras, operator: Operator | None = None,
-            progress: Callable[[str], None] | None = None) -> SessionReport:
-        """Capture every expression not yet complete, then write the manifest.
+            log: Callable[[str], None] | None = None) -> SessionReport:
+        """Capture every expression not yet complete, then write the manifest; ``log(message)`` hears
+        each take's outcome.
 
         Raises :class:`SessionInterrupted` (resumable) when the hardware, the disk or
         the operator (Ctrl-C) stops it; the journal says where it stopped.
@@ -355,7 +356,7 @@ class CaptureSession:
             return self.report()
         self.controller, self.cameras = controller, cameras
         self.operator = operator or Operator()
-        self.progress = progress or (lambda msg: None)
+        self.say = log or (lambda msg: None)
         missing_cams = set(c.name for c in self.rig.cameras) - set(cameras.names)
         if missing_cams:
             raise SessionError(f"the camera system lacks cameras {sorted(missing_cams)} of the session's rig")
@@ -545,7 +546,7 @@ class CaptureSession:
                 take = self.state.take(e, number)
             if self._missing(take):
                 self._log("sitting", expression=e, take=take.number, sitting=take.sittings)
-                self.progress(f"{e}: take {take.number}" + (f", sitting {take.sittings}" if take.sittings > 1 else ""))
+                self.say(f"{e}: take {take.number}" + (f", sitting {take.sittings}" if take.sittings > 1 else ""))
                 note = self.operator.prompt(expr, take.number, take.sittings - 1)
                 if note:  # whatever the operator wants on record (the simulation: the motion it injected)
                     self._log("operator_note", expression=e, take=take.number, **note)
@@ -673,7 +674,7 @@ class CaptureSession:
             verdict = self.config.motion.judge(scores, reference_from(accepted))
             self._log("motion", expression=e, take=take.number, **verdict.to_dict())
             if verdict.blurred:
-                self.progress(f"{e}: take {take.number} blurred ({', '.join(verdict.blurred_cameras)}); retaking")
+                self.say(f"{e}: take {take.number} blurred ({', '.join(verdict.blurred_cameras)}); retaking")
                 self._log("take_end", expression=e, take=take.number, status="rejected", scores=scores,
                           reason=f"subject motion: blurred in {verdict.blurred_cameras}")
                 return
@@ -684,7 +685,7 @@ class CaptureSession:
         self._log("take_end", expression=e, take=take.number, status="candidate", scores=scores)
         cands = [t for t in self.state.takes.get(e, []) if t.status == "candidate" and t.scores]
         if len(cands) < max(1, self.config.reference_takes):
-            self.progress(f"{e}: take {take.number} kept as a reference candidate")
+            self.say(f"{e}: take {take.number} kept as a reference candidate")
             return
         ref = {c: max(t.scores[c] for t in cands) for c in scores}
         verdicts = {t.number: self.config.motion.judge(t.scores, ref) for t in cands}
@@ -734,7 +735,7 @@ class CaptureSession:
             raise SessionError(f"expression {e!r}: the accepted take has {len(checksums)} images, expected "
                                f"{len(self.lights) * len(self.rig.cameras)}")
         self._log("expression_complete", expression=e, take=take.number, checksums=checksums)
-        self.progress(f"{e}: complete (take {take.number})")
+        self.say(f"{e}: complete (take {take.number})")
 
     # ----------------------------------------------------------------- finish
     def _finish(self) -> None:
@@ -752,7 +753,7 @@ class CaptureSession:
         writer.checksums = checksums
         writer.finish()
         self._log("session_complete", images=len(checksums))
-        self.progress(f"capture complete: {len(self.expressions)} expressions, {len(checksums)} images")
+        self.say(f"capture complete: {len(self.expressions)} expressions, {len(checksums)} images")
 
 
 def verify_capture(root) -> tuple[int, list[str]]:

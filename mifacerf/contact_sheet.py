@@ -28,8 +28,10 @@ def key_light(capture: Capture, camera) -> int:
 
 
 def contact_sheet(capture_dir, out_png, camera: str | None = None, environment: str = "sky",
-                  tile: int = 192, columns: int = 6, progress=None) -> Path:
-    """Write a PNG: per expression a pair of tiles (one light | relit), labelled."""
+                  tile: int = 192, columns: int = 6, progress: bool = True) -> Path:
+    """Write a PNG: per expression a pair of tiles (one light | relit), labelled (``progress``: a bar)."""
+    from .progress import bar
+
     cap = Capture(capture_dir)
     cam = cap.rig.camera(camera) if camera else cap.rig.cameras[min(1, len(cap.rig.cameras) - 1)]
     key = key_light(cap, cam)
@@ -42,7 +44,7 @@ def contact_sheet(capture_dir, out_png, camera: str | None = None, environment: 
         level = np.percentile(lit[lit > 0], 90) if (lit > 0).any() else 1.0
         return img * (0.45 / max(level, 1e-6))
 
-    for name in (progress(names) if progress else names):
+    for name in bar(names, progress, desc="contact sheet"):
         field = cap.field(name, cam.name)
         one = field[key]
         lit = relight(field, weights)

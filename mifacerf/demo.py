@@ -49,8 +49,6 @@ class Stages:
 
 
 def stage_capture(out: Path, preset: str) -> Path:
-    from tqdm.auto import tqdm
-
     from .contact_sheet import contact_sheet
     from .synthetic.synth import synthesize
 
@@ -60,7 +58,7 @@ def stage_capture(out: Path, preset: str) -> Path:
     else:
         synthesize(out, preset)
     if not (out / "contact_sheet.png").exists():
-        contact_sheet(cap, out / "contact_sheet.png", progress=lambda x: tqdm(x, desc="contact sheet"))
+        contact_sheet(cap, out / "contact_sheet.png")
     return cap
 
 
@@ -71,8 +69,6 @@ def stage_register(cap: Path) -> Path:
 
 
 def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,), method: str | None = None) -> Path:
-    from tqdm.auto import tqdm
-
     from .rendering.build import build_model
     from .rendering.compression import DEFAULT_COMPRESS_METHOD, compress_model
     from .rendering.model import Model
@@ -80,13 +76,12 @@ def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,), method: str | None 
     model = out / "model"
     stamp = (reg / "registration.json").stat().st_mtime
     if not ((model / "model.json").exists() and (model / "model.json").stat().st_mtime > stamp):
-        build_model(cap, model, reg, overwrite=True, progress=lambda j: tqdm(j, desc="build", unit="field"))
+        build_model(cap, model, reg, overwrite=True)
     m = Model(model)
     method = method or DEFAULT_COMPRESS_METHOD   # a COMPRESSION_METHODS name that compresses
     for k in ranks:
         if k not in m.meta.get("compressed", {}).get(method, []):
-            compress_model(m, k, progress=lambda j: tqdm(j, desc=f"compress {method}{k}", unit="field"),
-                           method=method)
+            compress_model(m, k, method=method)
     return model
 
 
@@ -144,16 +139,13 @@ def stage_performance(out: Path, model: Path, **options) -> dict:
 
 def stage_metrics(out: Path, model: Path, fast: bool) -> dict:
     """A quick check within the demo's time budget (one case per kind, 256 truth samples per pixel; the
-    README's numbers come from ``mifacerf evaluate`` and ``mifacerf bench`` with more cases and samples)."""
-    from tqdm.auto import tqdm
-
+    README's numbers come from ``mifacerf evaluate render`` and ``mifacerf bench`` with more cases and samples)."""
     from .evaluation.bench import run as bench
     from .evaluation.render_cases import evaluate
 
     report = evaluate(out, model, envs=ENVIRONMENTS, n=1, seed=int(time.time()), spp_truth=64 if fast else 256,
-                      progress=lambda j: tqdm(j, desc="metrics"), pictures=out / "metrics_cases.png")
-    b = bench(model, out, out / "bench", n_frames=1, size=128, spp_truth=64 if fast else 256, quick=True,
-              progress=lambda x, desc="": tqdm(x, desc=desc))
+                      pictures=out / "metrics_cases.png")
+    b = bench(model, out, out / "bench", n_frames=1, size=128, spp_truth=64 if fast else 256, quick=True)
     return {"cases": report, "bench": b}
 
 

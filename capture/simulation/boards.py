@@ -122,21 +122,22 @@ class BoardRenderer:
             img = img + self.noise * np.random.default_rng(seed).standard_normal(img.shape)
         return np.clip(img, 0, 1).astype(np.float32)
 
-    def render_views(self, cameras: list[Camera], poses, progress=None) -> dict[str, list[np.ndarray]]:
-        """Images per camera name, one per pose (camera-major order, so rays are traced once per camera)."""
+    def render_views(self, cameras: list[Camera], poses, log=None) -> dict[str, list[np.ndarray]]:
+        """Images per camera name, one per pose (camera-major order, so rays are traced once per camera);
+        ``log(camera name)`` after each camera."""
         out = {}
         for ci, cam in enumerate(cameras):
             out[cam.name] = [self.render(cam, p, seed=1000 * ci + vi) for vi, p in enumerate(poses)]
-            if progress:
-                progress(cam.name)
+            if log:
+                log(cam.name)
         return out
 
 
 def write_board_dataset(root, cameras: list[Camera], board: BoardSpec, *, n_views: int = 20, spp: int = 4,
-                        tilt_deg: float = 55.0, seed: int = 0, progress=None):
+                        tilt_deg: float = 55.0, seed: int = 0, log=None):
     """Render ``n_views`` board poses into every camera and write a board-capture folder:
     ``boards.json`` (board, views, the world pose of view 0), ``<camera>/V<view>.png`` (8-bit
-    grey) and ``truth.json`` (the cameras and board poses used)."""
+    grey) and ``truth.json`` (the cameras and board poses used); ``log(camera name)`` after each camera."""
     import json
     from pathlib import Path
 
@@ -152,8 +153,8 @@ def write_board_dataset(root, cameras: list[Camera], board: BoardSpec, *, n_view
         for vi, pose in enumerate(poses):
             img = renderer.render(cam, pose, seed=1000 * ci + vi)
             write_png(root / cam.name / f"V{vi:03d}.png", (img * 255 + 0.5).astype(np.uint8))
-        if progress:
-            progress(cam.name)
+        if log:
+            log(cam.name)
     write_json_atomic(root / "boards.json", {
         "format": "mifacerf.board-captures", "version": 1, "board": board.to_dict(),
         "cameras": [c.name for c in cameras], "views": n_views, "pattern": "{camera}/V{view:03d}.png",

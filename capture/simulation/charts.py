@@ -75,8 +75,9 @@ def frontal_lights(rig: Rig, k: int) -> np.ndarray:
 
 
 def write_chart_dataset(root, rig: Rig, sensors: dict[str, SensorModel], *, exposures=(0.25, 0.5, 1.0, 2.0, 4.0), olat_exposure: float = 1.6,
-                        olat_lights=None, progress=None) -> Path:
-    """Render and write the chart captures of every camera of ``rig`` into ``root``."""
+                        olat_lights=None, log=None) -> Path:
+    """Render and write the chart captures of every camera of ``rig`` into ``root``; ``log(camera name)``
+    after each camera."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     grey_names, grey_y = grey_reference()
@@ -106,8 +107,8 @@ def write_chart_dataset(root, rig: Rig, sensors: dict[str, SensorModel], *, expo
                 path = root / set_name / cam.name / f"{k:03d}.exr"
                 path.parent.mkdir(parents=True, exist_ok=True)
                 write_exr(path, img)
-        if progress:
-            progress(cam.name)
+        if log:
+            log(cam.name)
     desc = {
         "format": "mifacerf.chart-captures", "version": 1,
         "rig": rig.to_dict(),

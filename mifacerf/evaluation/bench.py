@@ -125,10 +125,12 @@ def disk_bytes(model_root: Path, config: str) -> int:
 
 
 def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "sky", spp: int = 1,
-        spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress=None) -> dict:
-    """Run the benchmark; returns the results (also written to ``out``)."""
+        spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress: bool = True) -> dict:
+    """Run the benchmark (``progress``: bars over the truths and the configurations); returns the results
+    (also written to ``out``)."""
     import mifacerf as mf
 
+    from ..progress import bar
     from ..synthetic.truth_scene import TruthRenderer
     from .masks import classify_pixels, face_mask
     from .metrics import psnr
@@ -139,7 +141,7 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     fr = frames(face.model, n_frames, seed, size)
     tr = TruthRenderer.from_synth(synth_out)
     truths, masks = [], []
-    for i, f in enumerate(progress(fr, desc="ground truth") if progress else fr):
+    for i, f in enumerate(bar(fr, progress, desc="ground truth")):
         cam = face.camera((f["yaw"], f["pitch"]), size=size)
         t = tr.render(tr.blend(f["expression"]), cam, env, spp=spp_truth, seed=100 + i)
         truths.append(t)
@@ -152,7 +154,7 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     job_path.write_text(json.dumps(job))
     cfgs = configs(face.model.meta, quick)
     results = []
-    for cfg in (progress(cfgs, desc="configurations") if progress else cfgs):
+    for cfg in bar(cfgs, progress, desc="configurations"):
         subprocess.run([sys.executable, "-m", "mifacerf.evaluation.bench", str(job_path), cfg], check=True,
                        env={**os.environ})
         d = out / cfg.replace("/", "_")

@@ -27,12 +27,9 @@ from ..tracking.cli import drive_options
 @click.option("--quick", is_flag=True, help="Only dense, exact and the first compressed rank.")
 def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick):
     """Benchmark run time per frame against error: dense reference, exact path, compressed ranks."""
-    from tqdm.auto import tqdm
-
     from .bench import run
 
-    report = run(model, synth_out, out, n_frames=n_frames, size=size, env=env, spp_truth=spp_truth, quick=quick,
-                 progress=lambda x, desc="": tqdm(x, desc=desc))
+    report = run(model, synth_out, out, n_frames=n_frames, size=size, env=env, spp_truth=spp_truth, quick=quick)
     click.echo((Path(out) / "table.md").read_text())
     click.echo(f"plot: {Path(out) / 'runtime_vs_error.png'}")
     del report
@@ -59,15 +56,13 @@ def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
     """Rendering accuracy of MODEL against path-traced ground truth: captured, blends, novel views, out-of-set."""
     import time
 
-    from tqdm.auto import tqdm
-
     from .render_cases import evaluate
 
     seed = int(time.time()) if seed is None else seed
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth,
-                      progress=lambda j: tqdm(j, desc="cases"), pictures=out / "cases.png")
+                      pictures=out / "cases.png")
     (out / "report.json").write_text(json.dumps(report, indent=1))
     for k, v in report["summary"].items():
         click.echo(f"case {k}: PSNR {v['psnr'].get('mean', float('nan')):.2f} dB (min {v['psnr'].get('min', 0):.2f}; "

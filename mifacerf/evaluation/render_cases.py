@@ -96,13 +96,14 @@ def wrinkle_triangles(subject, params, threshold: float = 0.3) -> np.ndarray:
 
 
 def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, seed: int = 20261122,
-             spp_truth: int = 1024, spp: int = 4, size: int | None = None, progress=None,
+             spp_truth: int = 1024, spp: int = 4, size: int | None = None, progress: bool = True,
              pictures: Path | None = None) -> dict:
-    """Run every case under every environment; returns a JSON-able report."""
+    """Run every case under every environment (``progress``: a bar over them); returns a JSON-able report."""
     import mifacerf as mf
 
     from ..imageio import write_png
     from ..pictures import error_map, grid, label, tile8
+    from ..progress import bar
     from ..synthetic.truth_scene import TruthRenderer
 
     tr = TruthRenderer.from_synth(out)
@@ -112,7 +113,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
     jobs = [(c, e) for c in cases for e in envs]
     tiles = []
     report = {"seed": seed, "spp_truth": spp_truth, "spp": spp, "envs": list(envs), "cases": []}
-    for case, env in (progress(jobs) if progress else jobs):
+    for case, env in bar(jobs, progress, desc="cases"):
         cam = case.camera if size is None else case.camera.resized(size, size)
         seed_t = int(rng.integers(1 << 30))
         halves = [tr.render(case.params, cam, env, spp=max(1, spp_truth // 2), seed=seed_t + k) for k in (0, 1)]

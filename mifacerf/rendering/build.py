@@ -37,9 +37,11 @@ def template_arrays(template: dict) -> dict:
 
 def build_model(capture: str | Path, out: str | Path, registration: str | Path | None = None,
                 expressions: list[str] | None = None, cameras: list[str] | None = None,
-                overwrite: bool = False, progress=None, culling: bool = True) -> Path:
-    """Build a model folder ``out`` from ``capture`` (and ``registration``, default CAPTURE/registration)."""
+                overwrite: bool = False, progress: bool = True, culling: bool = True) -> Path:
+    """Build a model folder ``out`` from ``capture`` (and ``registration``, default CAPTURE/registration);
+    ``progress``: a bar over the fields."""
     from ..blending import BlendModel
+    from ..progress import bar
 
     cap = Capture(capture)
     reg = Registration(registration or Path(capture) / "registration", capture=cap)
@@ -58,7 +60,7 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
                          t["triangles"], template=reg.template, neutral=neutral, overwrite=overwrite)
     scene = None
     jobs = [(n, cam) for n in names for cam in cams]
-    it = progress(jobs) if progress is not None else jobs
+    it = bar(jobs, progress, desc="build", unit="field")
     geometry = {}
     for name, cam in it:
         r = reg.expression(name)

@@ -27,8 +27,7 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
 
     try:
         path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
-                           overwrite=overwrite, culling=not no_culling,
-                           progress=lambda jobs: tqdm(jobs, desc="build", unit="field"))
+                           overwrite=overwrite, culling=not no_culling)
     except (CaptureError, RegistrationError, ModelError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"model written: {path.parent}")
@@ -57,14 +56,11 @@ def render_cmd(scene_or_model, output, defines):
               help="Coefficients per texel (repeat for several).")
 def compress_cmd(model, method, rank):
     """Add PCA-compressed versions of every reflectance field to a model."""
-    from tqdm.auto import tqdm
-
     from .compression import compress_model
     from .model import Model
 
     m = Model(model)
-    info = compress_model(m, list(rank), progress=lambda jobs: tqdm(jobs, desc="compress", unit="field"),
-                          method=method)
+    info = compress_model(m, list(rank), method=method)
     sizes = info["bytes"] if isinstance(info["bytes"], dict) else {rank[0]: info["bytes"]}
     for k, b in sizes.items():
         click.echo(f"rank {k}: {info['fields']} fields, {b / 1e6:.1f} MB")

@@ -78,10 +78,12 @@ def compressed_path(model_root, expression: str, camera: str, rank: int, method:
     return Path(model_root) / "fields" / expression / f"{camera}.{method}{rank}.npz"
 
 
-def compress_model(model, rank, progress=None, method: str = DEFAULT_COMPRESS_METHOD) -> dict:
+def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COMPRESS_METHOD) -> dict:
     """Write the ``<method><rank>`` version of every field of a model (``rank``: an int or several, computed
-    from one decomposition per field; ``method``: a :data:`COMPRESSION_METHODS` name that compresses);
-    returns {"bytes": {rank: ...}, "fields": n}."""
+    from one decomposition per field; ``method``: a :data:`COMPRESSION_METHODS` name that compresses;
+    ``progress``: a bar over the fields); returns {"bytes": {rank: ...}, "fields": n}."""
+    from ..progress import bar
+
     compress = compression_method(method).compress
     if compress is None:
         raise ValueError(f"the {method!r} method renders the stored field itself; there is nothing to compress "
@@ -89,7 +91,7 @@ def compress_model(model, rank, progress=None, method: str = DEFAULT_COMPRESS_ME
     ranks = [int(rank)] if np.isscalar(rank) else [int(r) for r in rank]
     jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
     total = {r: 0 for r in ranks}
-    for s, c in (progress(jobs) if progress else jobs):
+    for s, c in bar(jobs, progress, desc=f"compress {method}", unit="field"):
         f = model.field(s, c)
         for r, comp in compress(np.asarray(f.rf), ranks).items():
             path = compressed_path(model.root, f.expression, f.camera, r, method)

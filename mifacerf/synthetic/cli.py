@@ -37,11 +37,9 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
         raise click.ClickException(str(exc)) from exc
     click.echo(f"capture reused: {cap}" if reuse else f"capture written to {cap}")
     if contact_sheet and not reuse:
-        from tqdm.auto import tqdm
-
         from ..contact_sheet import contact_sheet as sheet
 
-        png = sheet(cap, Path(out) / "contact_sheet.png", progress=lambda x: tqdm(x, desc="contact sheet"))
+        png = sheet(cap, Path(out) / "contact_sheet.png")
         click.echo(f"contact sheet: {png}")
 
 
