@@ -168,16 +168,16 @@ def test_the_scanner_reads_relative_function_level_and_private_imports():
         "from ..geometry import rigid\n"
         "from . import morph as M\n"
         "def f():\n"
-        "    from ..tracking.record import _frame, record_performance\n"
+        "    from ..rendering.api import _frame, load_model\n"
         "    import mifacerf.rendering.api\n"
         "    import mifacerf as mf\n"
         "    return M._private_helper(rigid.apply)\n"
     )
     arrows, private = arrows_of("mifacerf.registration.dots", text)
     assert {(a.target, a.line) for a in arrows} == {
-        ("mifacerf.geometry.rigid", 1), ("mifacerf.registration.morph", 2), ("mifacerf.tracking.record", 4),
+        ("mifacerf.geometry.rigid", 1), ("mifacerf.registration.morph", 2), ("mifacerf.rendering.api", 4),
         ("mifacerf.rendering.api", 5), ("mifacerf", 6)}
-    assert {(a.target, a.private) for a in private} == {("mifacerf.tracking.record", "_frame"),
+    assert {(a.target, a.private) for a in private} == {("mifacerf.rendering.api", "_frame"),
                                                         ("mifacerf.registration.morph", "_private_helper")}
     assert str(private[0]).startswith("mifacerf/registration/dots.py:")
 
