@@ -69,15 +69,14 @@ def vm_hwm() -> int:
 
 def worker(job_path: str, config: str) -> None:
     """Render the job's frames with one configuration; write renders and timings next to the job."""
-    import mifacerf as mf
-
+    from ..rendering.api import load_model
     from ..rendering.renderer import Renderer, RenderStats
     from .dense_reference import dense_render
 
     job = json.loads(Path(job_path).read_text())
     out = Path(job["out"]) / config.replace("/", "_")
     out.mkdir(parents=True, exist_ok=True)
-    face = mf.load_model(job["model"])
+    face = load_model(job["model"])
     size = job["size"]
     if config.startswith("exact@"):
         size = int(config.split("@")[1])
@@ -128,16 +127,15 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
         spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress: bool = True) -> dict:
     """Run the benchmark (``progress``: bars over the truths and the configurations); returns the results
     (also written to ``out``)."""
-    import mifacerf as mf
-
     from ..progress import bar
+    from ..rendering.api import load_model
     from ..synthetic.truth_scene import TruthRenderer
     from .masks import classify_pixels, face_mask
     from .metrics import psnr
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    face = mf.load_model(model)
+    face = load_model(model)
     fr = frames(face.model, n_frames, seed, size)
     tr = TruthRenderer.from_synth(synth_out)
     truths, masks = [], []

@@ -99,15 +99,14 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
              spp_truth: int = 1024, spp: int = 4, size: int | None = None, progress: bool = True,
              pictures: Path | None = None) -> dict:
     """Run every case under every environment (``progress``: a bar over them); returns a JSON-able report."""
-    import mifacerf as mf
-
     from ..imageio import write_png
     from ..pictures import error_map, grid, label, tile8
     from ..progress import bar
+    from ..rendering.api import load_model
     from ..synthetic.truth_scene import TruthRenderer
 
     tr = TruthRenderer.from_synth(out)
-    face = mf.load_model(model_path)
+    face = load_model(model_path)
     rng = np.random.default_rng(seed)
     cases = draw_cases(tr, face.model, rng, n)
     jobs = [(c, e) for c in cases for e in envs]
