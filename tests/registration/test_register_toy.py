@@ -13,6 +13,9 @@ from mifacerf.geometry.visibility import Visibility
 from . import toy
 from .conftest import errors_px
 
+# every test here needs the toy capture (tests/registration/conftest.py), ~20 s to render and register
+pytestmark = pytest.mark.slow
+
 
 def test_registers_the_dots(toy_registered):
     cap, truth, out = toy_registered

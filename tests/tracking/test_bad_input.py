@@ -9,6 +9,9 @@ import pytest
 
 from conftest import copy_performance, paint_out_dot
 
+# every test here needs the tracking world (tests/tracking/conftest.py), a fixture of more than 20 s
+pytestmark = pytest.mark.slow
+
 MODEL = {"path": None}
 
 

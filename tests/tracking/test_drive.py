@@ -19,6 +19,7 @@ def driven(world, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_outputs(driven, world):
     import imageio.v2 as iio
 
@@ -41,6 +42,7 @@ def test_outputs(driven, world):
     assert (driven / "strip.png").exists() and meta["strip_frames"][0] == FRAMES[0]
 
 
+@pytest.mark.slow
 def test_psnr_and_coherence_against_truth(driven, world, tmp_path):
     meta = json.loads((driven / "drive.json").read_text())
     for env in ("sky", "interior"):
@@ -56,6 +58,7 @@ def test_psnr_and_coherence_against_truth(driven, world, tmp_path):
     assert w["change"]["mean"] < 10.0 * wt["change"]["mean"] + 0.02, (w, wt)
 
 
+@pytest.mark.slow
 def test_a_wrong_track_scores_worse(driven, world, tmp_path):
     """The measurement can fail: the same frames driven by a mesh 8 mm off score lower."""
     import shutil
@@ -93,6 +96,7 @@ def test_coherence_measures_detect_flicker():
     assert pn.summary()["flicker"]["mean"] > 10 * pc.summary()["flicker"]["mean"]
 
 
+@pytest.mark.slow
 def test_drive_cli(world, tmp_path):
     """``mifacerf drive`` renders without reading the truth; ``mifacerf evaluate drive`` adds the comparison."""
     from click.testing import CliRunner
@@ -121,6 +125,7 @@ def test_drive_cli(world, tmp_path):
     assert r.exit_code != 0
 
 
+@pytest.mark.slow
 def test_demo_performance_stage(world, tmp_path):
     """``mifacerf demo``'s performance stage: reuses the recorded performance, tracks, drives, compares the
     track with the truth, returns its metrics."""

@@ -53,6 +53,7 @@ def test_bad_lengths_are_refused():
         script(0.0)
 
 
+@pytest.mark.slow
 def test_recorded_performance_folder_and_truth(world):
     from mifacerf.tracking.folder import PerformanceFolder
     from mifacerf.synthetic.recording import read_truth
@@ -81,6 +82,7 @@ def test_recorded_performance_folder_and_truth(world):
     assert {"lip_upper", "lip_lower"} <= set(d["curves"]) and len(d["curves"]["lip_upper"]) >= 2
 
 
+@pytest.mark.slow
 def test_synth_cli_records_a_performance_next_to_an_existing_capture(world, tmp_path):
     import shutil
 

@@ -8,6 +8,9 @@ import pytest
 from conftest import copy_performance
 from openwatch import watch_opens
 
+# every test here needs the tracking world (tests/tracking/conftest.py), a fixture of more than 20 s
+pytestmark = pytest.mark.slow
+
 
 def test_clean_track_against_truth(world):
     from mifacerf.evaluation.tracking import evaluate_track
