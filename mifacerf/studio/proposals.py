@@ -4,11 +4,14 @@
   there is a template, else the prior yellow colour direction of :mod:`mifacerf.registration.dots`).
 * :func:`propose_expression` — for an expression, from the nearest registered expression ``R`` (the
   one whose registered fiducials, projected into this expression's views, land on the most dot
-  strength): the coarse points snapped to this expression's dots in each view where ``R`` saw them,
-  triangulated; ``R``'s whole template carried by the coarse morph (:class:`~mifacerf.registration.morph.CoarseMorph`)
-  from ``R``'s coarse points to those; the lip and eyelid margins, the head points and the lower-teeth
-  mark projected from the morphed template into the views ``R``'s rotoscoping used (or the two views
-  that see them most directly); the irises from ``R``'s curves moved with the morphed eye.
+  strength; the template itself before anything is registered): ``R``'s template is carried onto this
+  expression by its dots (:func:`follow_dots`: a rigid alignment that lands ``R``'s fiducials on the most
+  dot strength, then rounds of snapping every fiducial to its nearest dot and moving every vertex by the
+  median displacement of its nearest snapped fiducials); the coarse points are that template's coarse
+  vertices snapped to this expression's dots and triangulated; the lip and eyelid margins, the head
+  points and the lower-teeth mark are projected from it into the views ``R``'s rotoscoping used (or the
+  two views facing the face most directly); the irises are ``R``'s curves moved with the eyelids (or the
+  template's limbus looking forward).
 * :func:`propose_template` — a template from the neutral's images alone (:mod:`.template_proposal`).
 
 Proposals are never written by themselves: the page shows them and the user accepts, moves or deletes
@@ -101,7 +104,6 @@ def _best_views(session, X: np.ndarray, normal_hint: np.ndarray, k: int = 2) -> 
 
 def propose_expression(session, name: str) -> dict:
     """Proposed hand state (the session's format, :mod:`.session`) for ``name``, with ``source`` and notes."""
-    from ..registration.morph import CoarseMorph
     from ..geometry.triangulate import triangulate
 
     session.check_expression(name)
@@ -119,18 +121,20 @@ def propose_expression(session, name: str) -> dict:
     fp = centre_footprint(session.cams)
     search = max(1.5, 0.35 * _dot_spacing(tpl) / fp)
     coarse = tpl.coarse
-    uvR = np.stack([cam.project(R.vertices[coarse])[0] for cam in session.cams])      # (C, K, 2)
-    clicks = np.full_like(uvR, np.nan)
+    V, track = follow_dots(session, tpl, R, maps, search)
+    # the coarse points: the followed template's coarse vertices snapped to this expression's dots
+    uvV = np.stack([cam.project(V[coarse])[0] for cam in session.cams])               # (C, K, 2)
+    vis = track["visible"][:, coarse]
+    clicks = np.full_like(uvV, np.nan)
     for c, cam in enumerate(session.cams):
-        vis = R.visible[c, coarse]
-        pk, val = peak_near(maps[cam.name], uvR[c], search)
-        good = vis & (val >= 0.25) & np.isfinite(pk).all(1)
-        # a non-dot coarse point (mouth corner, ear) has no dot: keep the reference's projection
-        nodot = vis & ~tpl.is_dot[coarse]
+        pk, val = peak_near(maps[cam.name], uvV[c], min(search, 1.0))
+        good = vis[c] & (val >= 0.25) & np.isfinite(pk).all(1)
+        # a non-dot coarse point (mouth corner, ear) has no dot: the followed template's projection
+        nodot = vis[c] & ~tpl.is_dot[coarse]
         clicks[c, good] = pk[good]
-        clicks[c, nodot] = uvR[c, nodot]
-    tr = triangulate(session.cams, clicks, max_error=2.0)
-    ok = tr.ok & (tr.max_error <= 2.0)
+        clicks[c, nodot] = uvV[c, nodot]
+    tr = triangulate(session.cams, clicks, max_error=1.0)
+    ok = tr.ok & (tr.max_error <= 1.0)
     state = {"coarse": {}, "rotoscope": {"curves": {}, "points": {}, "eyes_look_at": None}, "overrides": {}}
     for j, vid in enumerate(coarse):
         if ok[j]:
@@ -138,19 +142,6 @@ def propose_expression(session, name: str) -> dict:
                 "clicks": {n: np.round(clicks[c, j], 3).tolist() for c, n in enumerate(session.names)
                            if tr.used[c, j]},
                 "position": np.round(tr.points[j], 7).tolist()}
-    # the whole template carried by the coarse morph from R's coarse points to the proposed ones
-    cR = R.vertices[coarse]
-    cE = np.where(ok[:, None], tr.points, np.nan)
-    V = R.vertices.copy()
-    usable = np.isfinite(cE).all(1)
-    if usable.sum() >= 3:
-        from ..registration.morph import mls_affine
-
-        cE[~usable] = mls_affine(cR[usable], cE[usable], cR[~usable], k=6, eps=0.01) if (~usable).any() else cE[~usable]
-        try:
-            V = CoarseMorph(cR, cE, tpl.coarse_triangles)(R.vertices)
-        except (ValueError, np.linalg.LinAlgError):
-            V = R.vertices.copy()
     rot_src = session.hand_state(src)["rotoscope"] if src != "template" else {"curves": {}, "points": {}}
     forward = np.array([0.0, 0.0, 1.0])
     for mname, ids in tpl.margins.items():
@@ -192,10 +183,20 @@ def propose_expression(session, name: str) -> dict:
     lt = tpl.lower_teeth_point
     if lt is not None and np.isfinite(R.teeth[1]).all():
         pR = R.teeth[1][:3, :3] @ lt + R.teeth[1][:3, 3]
-        # carried by the morph's displacement of the nearest template vertex
-        k = int(np.argmin(np.linalg.norm(R.vertices - pR, axis=1)))
-        p = pR + (V[k] - R.vertices[k])
+        chin = np.asarray(tpl.regions.get("chin", []), np.int64)
+        if len(chin) >= 3:        # carried by the jaw: the morph's rigid motion of the chin
+            from ..geometry.rigid import apply, rigid_from_points
+
+            p = apply(rigid_from_points(R.vertices[chin], V[chin]), pR[None])[0]
+        else:                     # ... or the morph's displacement of the nearest template vertex
+            k = int(np.argmin(np.linalg.norm(R.vertices - pR, axis=1)))
+            p = pR + (V[k] - R.vertices[k])
         views = [c for c in rot_src["points"].get("lower_teeth", {}) if c in session.names]
+        up, lo = tpl.margins.get("lip_upper"), tpl.margins.get("lip_lower")
+        if not views and up is not None and lo is not None and len(up) > 2 and len(lo) > 2:
+            gap = np.linalg.norm(V[up[len(up) // 2]] - V[lo[len(lo) // 2]])
+            if gap > 0.004:       # the mouth is open: the teeth show in the views facing the face
+                views = _best_views(session, p[None], forward)
         if len(views) >= 2:
             state["rotoscope"]["points"]["lower_teeth"] = {
                 c: np.round(session.camera(c).project(p[None])[0][0], 3).tolist() for c in views}
@@ -207,11 +208,133 @@ def propose_expression(session, name: str) -> dict:
                     "projected from the coarse morph"}
 
 
+def _blurred(m: np.ndarray, sigma: float) -> np.ndarray:
+    from ..registration.dots import gaussian
+
+    return gaussian(m, sigma)
+
+
+def _rigid_score(session, maps: dict, X: np.ndarray, vis: np.ndarray) -> float:
+    from ..registration.dots import bilinear
+
+    return float(sum(bilinear(maps[cam.name], cam.project(X[vis[c]])[0]).sum()
+                     for c, cam in enumerate(session.cams) if vis[c].any()))
+
+
+def align_rigidly(session, X: np.ndarray, vis: np.ndarray, maps: dict, sigma_px: float = 1.5):
+    """The rigid motion (4, 4) of points ``X`` (N, 3) (seen where ``vis`` (C, N)) that lands them on the most
+    dot strength: a grid over head turns (yaw ±30°, pitch ±20°, roll ±10°, about their centroid) on
+    blurred maps, then translations (±1.5 cm), then a local refinement on sharper maps."""
+    from scipy.optimize import minimize
+    from scipy.spatial.transform import Rotation
+
+    from ..geometry.rigid import apply, homogeneous
+
+    c0 = X.mean(0)
+    pivots = [c0, c0 + np.array([0.0, -0.06, -0.09])]   # the face's centre, and the neck (a head turns about it)
+    pivot = [c0]
+
+    def T_of(p):
+        Rm = Rotation.from_rotvec(np.radians(p[:3])).as_matrix()
+        return homogeneous(Rm, pivot[0] + p[3:] - Rm @ pivot[0])
+
+    def score(p, mp):
+        return _rigid_score(session, mp, apply(T_of(p), X), vis)
+    wide = {k: _blurred(m, 2.0 * sigma_px) for k, m in maps.items()}
+    best, best_piv = np.zeros(6), c0
+    best_s = score(best, wide)
+    for pv in pivots:
+        pivot[0] = pv
+        for yaw in np.arange(-30, 31, 5.0):
+            for pitch in np.arange(-20, 21, 5.0):
+                for roll in (-10.0, -5.0, 0.0, 5.0, 10.0):
+                    p = np.array([pitch, yaw, roll, 0, 0, 0])
+                    sc = score(p, wide)
+                    if sc > best_s:
+                        best, best_s, best_piv = p, sc, pv
+    pivot[0] = best_piv
+    for step, span in ((0.005, 0.025), (0.00125, 0.005)):
+        for axis in (0, 1, 2, 0, 1, 2):
+            centre = best.copy()
+            for d in np.arange(-span, span + 1e-9, step):
+                p = centre.copy()
+                p[3 + axis] += d
+                sc = score(p, wide)
+                if sc > best_s:
+                    best, best_s = p, sc
+    sharp = {k: _blurred(m, sigma_px) for k, m in maps.items()}
+    scale = np.array([1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])      # degrees and millimetres
+    res = minimize(lambda q: -score(q * scale, sharp), best / scale, method="Powell",
+                   options={"xtol": 0.05, "ftol": 1e-4, "maxfev": 600})
+    p = res.x * scale if -res.fun >= score(best, sharp) else best
+    return T_of(p)
+
+
+def follow_dots(session, tpl, R, maps: dict, search_px: float, rounds: int = 8):
+    """The template of the reference ``R`` carried onto this expression by its dots: a rigid alignment
+    (:func:`align_rigidly`), then rounds in the spirit of the progressive snap (paper §4.1): every
+    fiducial not yet placed starts from its prediction corrected by the placed fiducials round it on the
+    template mesh (:func:`~mifacerf.registration.snap.predict_from_neighbours`, so the mouth's opening
+    separates the jaw from the upper lip), snaps to the nearest dot peak within ``search_px`` in every
+    view that sees it, and is placed where two or more views agree to 1 px — until no point joins.
+    The other vertices follow their placed neighbours the same way. Returns (V (T, 3),
+    {"visible": (C, T), "snapped": ids, "rigid": (4, 4)})."""
+    from ..geometry.rigid import apply
+    from ..geometry.triangulate import triangulate
+    from ..registration.snap import dot_graph, predict_from_neighbours, two_rings
+    from ..geometry.visibility import Visibility
+
+    dots = tpl.dot_ids[R.status[tpl.dot_ids] == 1]
+    vis = Visibility(tpl.triangles, tpl.n_vertices, tol=max(0.5 * centre_footprint(session.cams), 5e-4))
+    T = align_rigidly(session, R.vertices[dots], R.visible[:, dots], maps)
+    pred = apply(T, R.vertices)
+    nb = dot_graph(tpl.n_vertices, tpl.triangles, tpl.is_dot)
+    rings2 = two_rings(nb)
+    X = pred.copy()
+    in_S = np.zeros(tpl.n_vertices, bool)
+    taken = [set() for _ in session.cams]
+    fp = centre_footprint(session.cams)
+    # points near their start first (a wrong dot is never nearer than the right one's neighbour), then
+    # farther, each step repeated while points join
+    shifts = [f * search_px for f in (0.35, 0.5, 0.75, 1.0, 1.5, 2.0) for _ in range(rounds // 4 + 1)]
+    for shift in shifts:
+        rest = dots[~in_S[dots]]
+        if rest.size == 0:
+            break
+        start = predict_from_neighbours(pred, X, in_S, rest, nb, rings2) if in_S.any() else pred[rest]
+        Xm = X.copy()
+        Xm[rest] = start
+        visible = vis(Xm, session.cams, min_cos=0.2)
+        uv = np.full((len(session.cams), len(rest), 2), np.nan)
+        for c, cam in enumerate(session.cams):
+            pk, val = peak_near(maps[cam.name], cam.project(start)[0], search_px)
+            good = visible[c, rest] & (val >= 0.25) & np.isfinite(pk).all(1)
+            uv[c, good] = pk[good]
+        tr = triangulate(session.cams, uv, max_error=1.0)
+        ok = tr.ok & (tr.max_error <= 1.0) & (np.linalg.norm(tr.points - start, axis=1) < shift * fp)
+        # one image dot, one template point: the first to claim a peak keeps it
+        for k in np.flatnonzero(ok):
+            keys = [(c, tuple(np.round(uv[c, k], 2))) for c in range(len(session.cams)) if tr.used[c, k]]
+            if any(key in taken[c] for c, key in keys):
+                ok[k] = False
+                continue
+            for c, key in keys:
+                taken[c].add(key)
+        if not ok.any():
+            continue
+        X[rest[ok]] = tr.points[ok]
+        in_S[rest[ok]] = True
+    others = np.flatnonzero(~in_S)
+    if in_S.any() and others.size:
+        X[others] = predict_from_neighbours(pred, X, in_S, others, nb, rings2)
+    return X, {"visible": vis(X, session.cams, min_cos=0.2), "snapped": np.flatnonzero(in_S), "rigid": T}
+
+
 def _template_as_registered(session, tpl):
     """The template standing in for a registered neutral (positions as placed, visibility ray-traced)."""
     from types import SimpleNamespace
 
-    from ..registration.visibility import Visibility
+    from ..geometry.visibility import Visibility
 
     vis = Visibility(tpl.triangles, tpl.n_vertices, tol=max(0.5 * centre_footprint(session.cams), 5e-4))
     return SimpleNamespace(vertices=tpl.vertices.copy(), visible=vis(tpl.vertices, session.cams, min_cos=0.3),
