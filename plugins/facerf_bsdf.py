@@ -43,24 +43,40 @@ P_COSINE = 0.9
 class FaceRFBSDF(mi.BSDF):
     def __init__(self, props):
         super().__init__(props)
-        from mifacerf.rendering.api import load_model
         from mifacerf.rendering.material import MaterialState
         from mifacerf.rendering.scenefile import read_target_mesh
 
-        if "model" not in props:
-            raise ValueError("facerf_bsdf: the 'model' parameter (a model folder) is required")
-        face = load_model(props["model"])
-        target = props["target"] if "target" in props else ""
-        expression = props["expression"] if "expression" in props else face.model.neutral
-        if target:
-            verts, W = face.target(mesh=read_target_mesh(target))
-        else:
-            verts, W = face.target(expression)
-        self.state = MaterialState(face.model, verts, W)
+        self.state = None
+        self.shape = None
+        self.n_skin_triangles = None
+        if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
+            from mifacerf.rendering.scene_assets import open_model
+
+            face = open_model(props["model"])
+            target = props["target"] if "target" in props else ""
+            expression = props["expression"] if "expression" in props else face.model.neutral
+            if target:
+                verts, W = face.target(mesh=read_target_mesh(target))
+            else:
+                verts, W = face.target(expression)
+            self.state = MaterialState(face.model, verts, W)
         flags = (mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
                  | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
         self.m_components = [flags]
         self.m_flags = flags
+
+    def attach(self, shape) -> None:
+        """Follow a ``facerf_face`` shape: its model and pose (called by the shape when it is built)."""
+        from mifacerf.rendering.material import MaterialState
+
+        self.shape = shape
+        pose = shape.pose_state
+        self.n_skin_triangles = shape.geometry.n_skin_triangles
+        if self.state is None or self.state.model is not shape.face.model:
+            self.state = MaterialState(shape.face.model, pose.target, pose.weights)
+        else:
+            self.state.update(pose.target, pose.weights)
+        shape.listeners.append(lambda s: self.state.update(s.pose_state.target, s.pose_state.weights))
 
     # --------------------------------------------------------------- sampling
     @staticmethod
@@ -86,9 +102,13 @@ class FaceRFBSDF(mi.BSDF):
         return self._pdf_local(wo)
 
     def eval(self, ctx, si, wo, active=True):
+        if self.state is None:
+            raise ValueError("facerf_bsdf: no model: give it a 'model' parameter or use it on a facerf_face shape")
         view = si.to_world(si.wi)
         light = si.to_world(wo)
         ok = mi.Bool(active) & (dr.squared_norm(view) > 0.5) & (dr.squared_norm(light) > 0.5)
+        if self.n_skin_triangles is not None:   # on a facerf_face shape: its skin triangles come first
+            ok &= si.prim_index < self.n_skin_triangles
         value = self.state.evaluate(si.prim_index, si.p, view, light, ok)
         return dr.select(ok & dr.isfinite(value.x + value.y + value.z), value, 0.0)
 

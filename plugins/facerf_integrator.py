@@ -12,18 +12,16 @@ sensor (render chunks, per-vertex rotations, camera weights) and lights every ch
 (:class:`mifacerf.rendering.frame.LitFrame`); ``sample`` then shades face hits with the
 same Dr.Jit kernel as the Python API.
 
+The face is the scene's ``facerf_face`` shape (:mod:`.facerf_shape`): its model, expression and
+pose are read from it at every render, so an animation sets them through ``mi.traverse`` and
+renders again without reloading. Its eyes, teeth and mouth interior (part-labelled triangles of
+that mesh) are shaded as §6.3's, with visibility ray-traced against the whole scene.
+
 .. list-table::
    * - model
-     - string — path of a model folder (``mifacerf build``)
-   * - expression
-     - string — ``name`` or ``name=w,name=w`` (linear blend); ignored when ``target`` is set
-   * - target
-     - string — optional path of a .ply/.npy target mesh in the template's topology (§5 weights)
+     - string — optional: a model folder, checked at load (the face shape names the one rendered)
    * - face
-     - string — id of the face shape (default ``face``); its vertices must be the target's
-   * - (parts)
-     - shapes with ids ``eye_left``, ``eye_right``, ``teeth_upper``, ``teeth_lower``, ``mouth_interior``
-       (written by :mod:`mifacerf.rendering.scenefile`) are shaded as §6.3's eyes and teeth
+     - string — optional id of the ``facerf_face`` shape (default: the scene's first)
    * - environment
      - string — optional generated name or lat-long file; default: the scene's infinite emitter
    * - method, rank
@@ -37,8 +35,9 @@ same Dr.Jit kernel as the Python API.
 
 Example::
 
-    {"type": "facerf", "model": "model", "expression": "smile=0.7,neutral=0.3",
-     "integrator": {"type": "path", "max_depth": 2}}
+    {"type": "scene", "integrator": {"type": "facerf", "integrator": {"type": "path", "max_depth": 2}},
+     "face": {"type": "facerf_face", "model": "model", "expression": "smile=0.7,neutral=0.3"},
+     "sky": {"type": "envmap", "filename": "sky.exr"}, ...}
 """
 from __future__ import annotations
 
@@ -50,7 +49,6 @@ mi = ensure_variant()
 
 import drjit as dr  # noqa: E402
 
-from mifacerf.rendering.parts import skin_in_front_of_parts  # noqa: E402
 
 
 def _environment_of(scene, spec: str | None, height: int = 128):
@@ -68,23 +66,71 @@ def _environment_of(scene, spec: str | None, height: int = 128):
                      "infinite emitter (envmap, constant, sunsky) in the scene")
 
 
+def _face_shape(scene, face_id: str | None):
+    """The scene's ``facerf_face`` shape (the one with id ``face_id`` if given)."""
+    from mifacerf.plugins.facerf_shape import FaceShape
+
+    faces = [s for s in scene.shapes() if isinstance(s, FaceShape)]
+    if face_id:
+        faces = [s for s in faces if s.id() == face_id]
+    if not faces:
+        what = f"a facerf_face shape with id {face_id!r}" if face_id else "a facerf_face shape"
+        raise ValueError(f"facerf: the scene has no {what} (<shape type=\"facerf_face\"> with the model folder)")
+    return faces[0]
+
+
+def skin_in_front_of_parts(scene, ray, si, face_shape, label, n_parts: int, active=True):
+    """The rule that parts belong inside the skin (:func:`mifacerf.rendering.parts.skin_in_front_of_parts`)
+    on the one ``facerf_face`` mesh, whose triangles carry a part label (``label``: UInt32 per triangle, 0
+    skin): a ray that meets a part first and then, past every further part, the *front* of the skin shows
+    that skin. Returns ``(on_skin, tri, p, on_part, part)``."""
+    face = mi.ShapePtr(face_shape)
+    active = mi.Bool(active)
+
+    def lab(hit, mask):
+        ok = mask & hit.is_valid() & (hit.shape == face)
+        return ok, dr.gather(mi.UInt32, label, hit.prim_index, ok)
+
+    on_face, k = lab(si, active)
+    on_skin = on_face & (k == 0)
+    on_part = on_face & (k > 0)
+    part = dr.select(on_part, k - 1, 0)
+    tri, p = si.prim_index, si.p
+    look = mi.Bool(on_part)
+    t = si.t
+    for _ in range(2 * n_parts):   # each closed part: in and out
+        t = t + 1e-5
+        nxt = scene.ray_intersect(mi.Ray3f(ray.o + ray.d * t, ray.d), look)
+        t = t + nxt.t
+        hit, kk = lab(nxt, look)
+        skin_front = hit & (kk == 0) & (dr.dot(nxt.n, ray.d) < 0)
+        tri = dr.select(skin_front, nxt.prim_index, tri)
+        p = dr.select(skin_front, nxt.p, p)
+        on_skin |= skin_front
+        look = hit & (kk > 0)
+    on_part &= ~on_skin
+    return on_skin, tri, p, on_part, part
+
+
 class FaceRFIntegrator(mi.SamplingIntegrator):
     def __init__(self, props):
         super().__init__(props)
-        from mifacerf.rendering.api import load_model
+        self.model_path = props["model"] if "model" in props else None
+        if self.model_path is not None:   # a missing folder is named now, not at the first render
+            from mifacerf.rendering.scene_assets import open_model
 
-        if "model" not in props:
-            raise ValueError("facerf: the 'model' parameter (a model folder) is required")
-        self.face = load_model(props["model"])
-        chosen = {k: props[p] for k, p in (("method", "method"), ("rank", "rank"), ("basis", "light_basis"))
-                  if p in props}
-        if chosen:   # methods by name (defaults: load_model's renderer)
-            from mifacerf.rendering.renderer import Renderer
+            open_model(self.model_path)
+        self.chosen = {k: props[p] for k, p in (("method", "method"), ("rank", "rank"), ("basis", "light_basis"))
+                       if p in props}
+        if self.chosen:   # methods by name, checked now (defaults: load_model's renderer)
+            from mifacerf.rendering.compression import compression_method
+            from mifacerf.environment import LIGHT_BASIS_METHODS
+            from mifacerf.methods import lookup
 
-            self.face.renderer = Renderer(self.face.model, **chosen)
-        self.expression = props.get("expression", None)
-        self.target_path = props["target"] if "target" in props else None
-        self.face_id = props["face"] if "face" in props else "face"
+            compression_method(self.chosen.get("method", "exact"))
+            lookup(LIGHT_BASIS_METHODS, self.chosen.get("basis", "voronoi"), "light basis")
+        self._renderers = {}
+        self.face_id = props["face"] if "face" in props else None
         self.env_spec = props["environment"] if "environment" in props else None
         nested = None
         for name in props.keys():
@@ -96,48 +142,54 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         self.face_shape = None
         self.stats = None
 
-    def target(self):
-        from mifacerf.rendering.scenefile import read_target_mesh
+    def renderer(self, face):
+        """The renderer of a face model, with this integrator's methods (one per model, kept warm)."""
+        key = id(face.model)
+        if key not in self._renderers:
+            if self.chosen:
+                from mifacerf.rendering.renderer import Renderer
 
-        if self.target_path:
-            return self.face.target(mesh=read_target_mesh(self.target_path))
-        return self.face.target(self.expression or self.face.model.neutral)
+                self._renderers[key] = Renderer(face.model, **self.chosen)
+            else:
+                self._renderers[key] = face.renderer
+        return self._renderers[key]
+
+    @property
+    def face(self):
+        """The face model being rendered (the scene's face shape's; before a render: the ``model`` parameter's)."""
+        if self.face_shape is not None:
+            return self.face_shape.face
+        from mifacerf.rendering.scene_assets import open_model
+
+        return open_model(self.model_path) if self.model_path else None
 
     def prepare(self, scene, sensor):
         """Plan and light the frame for ``sensor`` (called by :meth:`render`)."""
         from mifacerf.rendering.renderer import RenderStats
         from mifacerf.rendering.sensors import camera_from_sensor
         from mifacerf.rendering.chunks import plan_frame
-
-        shapes = [s for s in scene.shapes() if s.id() == self.face_id]
-        if not shapes:
-            raise ValueError(f"facerf: the scene has no shape with id {self.face_id!r}")
-        self.face_shape = shapes[0]
-        target, W = self.target()
-        verts = np.asarray(mi.traverse(self.face_shape)["vertex_positions"]).reshape(-1, 3)
-        if verts.shape != target.shape or np.abs(verts - target).max() > 1e-4:
-            raise ValueError(f"facerf: shape {self.face_id!r} is not the target mesh (vertex count or positions "
-                             "differ); write it with mifacerf.rendering.scenefile.write_target_mesh")
-        camera = camera_from_sensor(sensor)
-        self.stats = RenderStats()
-        plan = plan_frame(self.face.model, target, W, camera)
-        env = _environment_of(scene, self.env_spec)
-        self.frame = self.face.renderer.light_frame(plan, env, self.stats)
-        # eyes, teeth and the mouth's interior: shapes with the parts' names, if the scene has them
         from mifacerf.rendering.parts import PARTS
         from mifacerf.jitarrays import to_jit
 
-        parts = self.face.parts(mesh=target) if self.target_path else self.face.parts(
-            self.expression or self.face.model.neutral)
-        by_id = {s.id(): s for s in scene.shapes()}
-        self.part_shapes = [(PARTS.index(p), by_id[p]) for p in PARTS if p in by_id and p in parts]
+        self.face_shape = shape = _face_shape(scene, self.face_id)
+        face = shape.face
+        renderer = self.renderer(face)
+        pose = shape.pose_state
+        camera = camera_from_sensor(sensor)
+        self.stats = RenderStats()
+        plan = plan_frame(face.model, pose.target, pose.weights, camera)
+        env = _environment_of(scene, self.env_spec)
+        self.frame = renderer.light_frame(plan, env, self.stats)
+        self._label = to_jit(mi.UInt32, shape.label)
+        self.n_parts = len(shape.geometry.part_names)
+        parts = pose.parts
         self.part_frame = None
-        if self.part_shapes:
-            self.part_frame = self.face.renderer.part_frame(parts, camera, self.face.renderer.light_basis(env),
-                                                            self.stats)
+        if parts:
+            self.part_frame = renderer.part_frame(parts, camera, renderer.light_basis(env), self.stats,
+                                                  pose.weights)
             inv = np.zeros((len(PARTS), 16))
             centres = np.zeros((len(PARTS), 3))
-            tmpl = self.face.model.template
+            tmpl = face.model.template
             for p, T in parts.items():
                 k = PARTS.index(p)
                 inv[k] = np.linalg.inv(T).reshape(-1)
@@ -155,18 +207,12 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         active = mi.Bool(active)
         si = scene.ray_intersect(ray, active)
         # a part poking out through the skin in front of the camera shows the skin (parts.py)
-        on_face, tri, p_face = skin_in_front_of_parts(scene, ray, si, self.face_shape,
-                                                      [shape for _, shape in self.part_shapes], active)
+        on_face, tri, p_face, on_part, part = skin_in_front_of_parts(scene, ray, si, self.face_shape, self._label,
+                                                                     self.n_parts, active)
         tri = dr.select(on_face, tri, 0)
         bary = self.frame.barycentric(tri, p_face)
         colour, covered, _ = self.frame.shade(tri, bary, on_face)
-        on_part = mi.Bool(False)
-        part = mi.UInt32(0)
-        for k, shape in self.part_shapes:
-            hit = active & ~on_face & si.is_valid() & (si.shape == mi.ShapePtr(shape))
-            part = dr.select(hit, k, part)
-            on_part |= hit
-        if self.part_shapes:
+        if self.part_frame is not None:
             M = [dr.gather(mi.Float, self._part_inv, part * 16 + e, on_part) for e in range(12)]
             p = si.p
             q = mi.Point3f(*[M[4 * r] * p.x + M[4 * r + 1] * p.y + M[4 * r + 2] * p.z + M[4 * r + 3] for r in range(3)])
@@ -184,7 +230,7 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         return self.nested.aov_names()
 
     def to_string(self):
-        return f"FaceRFIntegrator[face={self.face_id!r}, expression={self.expression!r}]"
+        return f"FaceRFIntegrator[face={self.face_id!r}]"
 
 
 mi.register_integrator("facerf", lambda props: FaceRFIntegrator(props))

@@ -37,14 +37,20 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
 @click.argument("scene_or_model", type=click.Path(exists=True))
 @click.option("-o", "--output", default="render.exr", show_default=True)
 @click.option("-D", "defines", multiple=True, help="Scene parameter, NAME=VALUE (scene files).")
-def render_cmd(scene_or_model, output, defines):
+@click.option("--spp", type=int, default=None, help="Samples per pixel (default: the scene's sampler).")
+@click.option("-t", "--threads", type=int, default=None, help="CPU threads (default: all).")
+def render_cmd(scene_or_model, output, defines, spp, threads):
     """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
     from .scenefile import render_scene_file
 
+    bad = [d for d in defines if "=" not in d]
+    if bad:
+        raise click.BadParameter(f"expected NAME=VALUE, got {bad[0]!r}", param_hint="-D")
     try:
-        out = render_scene_file(scene_or_model, output, dict(d.split("=", 1) for d in defines))
-    except (KeyError, ValueError, FileNotFoundError) as exc:
-        raise click.ClickException(str(exc)) from exc
+        out = render_scene_file(scene_or_model, output, dict(d.split("=", 1) for d in defines), spp=spp,
+                                threads=threads)
+    except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
+        raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
     click.echo(f"wrote {out}")
 
 

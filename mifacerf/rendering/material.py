@@ -40,47 +40,60 @@ class MaterialState:
     """
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None):
-        from ..blending import local_rotations
-
         mi = ensure_variant()
         self.mi = mi
         self.model = model
+        self.nb = neighbourhoods if neighbourhoods is not None else model.blend.nbhd
+        S = len(model.expressions)
+        self.K = min(max_slots, S)
+        self.C = len(model.cameras)
+        self.uploaded: list[int] = []
+        self.triangles = to_jit(mi.UInt32, model.triangles.reshape(-1))
+        self.sources = to_jit(mi.Float, np.asarray(model.vertices, np.float64).reshape(-1))
+        self.visible = to_jit(mi.Float, np.asarray(model.visible, np.float32).reshape(-1))   # (S, C, T)
+        self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
+        self.n_lights = model.n_lights
+        self.views = ViewSampler.from_cameras(model.cameras)
+        self.lights = LightInterpolator(model.light_directions).to_device()
+        self.update(target, weights)
+
+    def update(self, target: np.ndarray, weights: np.ndarray) -> None:
+        """A new target (T, 3) and per-vertex weights (T, S): the per-vertex tables change values, not sizes,
+        so the material's kernels are re-used; a source not used before has its fields uploaded."""
+        from ..blending import local_rotations
+
+        mi, model = self.mi, self.model
         T, S = model.n_vertices, len(model.expressions)
         W = np.asarray(weights, np.float64)
         if W.shape != (T, S) or np.asarray(target).shape != (T, 3):
             raise ValueError(f"target {np.asarray(target).shape} / weights {W.shape} do not match the model "
                              f"({T} vertices, {S} expressions)")
-        order = np.argsort(-W, axis=1)[:, :max_slots]
+        order = np.argsort(-W, axis=1, kind="stable")[:, :self.K]
         sw = np.take_along_axis(W, order, axis=1)
         sw = np.where(sw > 1e-6, sw, 0.0)
         sw /= np.maximum(sw.sum(1, keepdims=True), 1e-300)
         used = sorted(set(order[sw > 0].tolist()))
         self.used = used
-        self.K = order.shape[1]
-        u_of = {s: i for i, s in enumerate(used)}
-        slot_u = np.vectorize(lambda s: u_of.get(int(s), 0))(order)
-        nb = neighbourhoods if neighbourhoods is not None else model.blend.nbhd
         target = np.asarray(target, np.float64)
         rot = np.broadcast_to(np.eye(3), (T, self.K, 3, 3)).copy()  # identity for unused slots
         for s in used:
-            R = local_rotations(target, model.vertices[s], nb)
-            hit = order == s
+            R = local_rotations(target, model.vertices[s], self.nb)
+            hit = (order == s) & (sw > 0)
             rot[hit] = R[np.nonzero(hit)[0]]
-        C = len(model.cameras)
-        self.C = C
-        # device tables
-        self.triangles = to_jit(mi.UInt32, model.triangles.reshape(-1))
         self.target = to_jit(mi.Float, target.reshape(-1))
-        self.slot_u = to_jit(mi.UInt32, slot_u.reshape(-1))
+        self.slot_u = to_jit(mi.UInt32, np.where(sw > 0, order, 0).reshape(-1))
         self.slot_w = to_jit(mi.Float, sw.reshape(-1))
         self.slot_R = to_jit(mi.Float, rot.reshape(-1))
-        self.sources = to_jit(mi.Float, np.stack([model.vertices[s] for s in used]).reshape(-1))
-        vis = np.stack([model.visible[s] for s in used]).astype(np.float32)  # (U, C, T)
-        self.visible = to_jit(mi.Float, vis.reshape(-1))
-        self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
-        index_parts, rf_parts, offsets = [], [], []
+        if not set(used) <= set(self.uploaded):
+            self._upload(sorted(set(self.uploaded) | set(used)))
+
+    def _upload(self, sources: list[int]) -> None:
+        """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images."""
+        mi, model, C = self.mi, self.model, self.C
+        index_parts, rf_parts = [], []
+        offsets = np.zeros(len(model.expressions) * C, np.uint32)
         img_off, row_off = 0, 0
-        for s in used:
+        for s in sources:
             for c in range(C):
                 cam = model.cameras[c]
                 idx = np.full(cam.height * cam.width, -1, np.int64)
@@ -90,16 +103,14 @@ class MaterialState:
                     rf_parts.append(np.asarray(f.rf))
                     row_off += len(f)
                 index_parts.append(idx)
-                offsets.append(img_off)
+                offsets[s * C + c] = img_off
                 img_off += cam.height * cam.width
         if row_off >= 2 ** 31 // (model.n_lights * 3):
             raise ValueError("too many texels for one material state; render fewer expressions at once")
         self.texel_index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32))
-        self.field_offset = to_jit(mi.UInt32, np.asarray(offsets, np.uint32))
+        self.field_offset = to_jit(mi.UInt32, offsets)
         self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
-        self.n_lights = model.n_lights
-        self.views = ViewSampler.from_cameras(model.cameras)
-        self.lights = LightInterpolator(model.light_directions).to_device()
+        self.uploaded = list(sources)
 
     # ------------------------------------------------------------------ kernel
     def evaluate(self, tri, p, view, light, active=True):

@@ -1,20 +1,18 @@
-"""Scene files (``scenes/*.xml``) that place a face model, a camera and an environment.
+"""Scene files (``scenes/*.xml``): plain Mitsuba XML naming mifacerf's plugins.
 
-A scene file is ordinary Mitsuba XML using mifacerf's plugins; mifacerf only adds the
-target mesh: :func:`render_scene_file` reads the scene's ``model``, ``expression`` and
-``target`` defaults (overridable with ``-D``), writes the target mesh (the template's
-topology, in vertex order, no texture coordinates) to a PLY, and loads the scene with
-``face_mesh`` set to it. In the scene, the face is::
+A scene names the model folder only; the ``facerf_face`` shape builds the face, eyes, teeth and
+mouth-interior meshes from it (:mod:`.scene_assets`), so after ``import mitsuba as mi;
+mi.set_variant(...); import mifacerf`` a scene loads with ``mi.load_file(path, model=MODEL)``.
+:func:`load_scene_file` / :func:`render_scene_file` (``mifacerf render``) add the command line's
+conveniences: ``-D`` values, a generated environment by name (``-D envmap=sky``), paths given on
+the command line taken relative to the working directory (a scene's own defaults are relative to
+the scene file, as Mitsuba resolves them), and the thread count.
 
-    <shape type="ply" id="face"><string name="filename" value="$face_mesh"/></shape>
-
-and its eyes, teeth and mouth interior are shapes with those ids (``eye_left``,
-``eye_right``, ``teeth_upper``, ``teeth_lower``, ``mouth_interior``) from ``$eye_left_mesh`` …
+:func:`write_target_mesh` / :func:`read_target_mesh`: target meshes in the template's topology
+(the shape's ``target`` parameter reads .ply/.obj/.npy).
 """
 from __future__ import annotations
 
-import os
-import tempfile
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -58,60 +56,42 @@ def scene_defaults(xml_path) -> dict:
 
 
 def load_scene_file(xml_path, params: dict | None = None):
-    """Load a scene file with its target mesh written; returns (scene, parameters used)."""
-    from .api import load_model
-
+    """Load a scene file with ``params`` (``-D`` values) over its defaults; returns (scene, parameters used)."""
     mi = ensure_plugins()  # the scene names the facerf plugins
     xml_path = Path(xml_path)
-    values = {**scene_defaults(xml_path), **(params or {})}
-    if "model" not in values:
-        raise KeyError(f"{xml_path}: needs a 'model' parameter (a <default> or -D model=...)")
-    face = load_model(Path(values["model"]).resolve())
-    target = values.get("target") or ""
-    if target:
-        vertices, _ = face.target(mesh=read_target_mesh(target))  # validates topology and values
-    else:
-        vertices, _ = face.target(values.get("expression") or face.model.neutral)
-    folder = Path(tempfile.mkdtemp(prefix="mifacerf-scene-"))
-    write_target_mesh(folder / "face.ply", vertices, face.model.triangles)
-    values["face_mesh"] = str(folder / "face.ply")
-    # eyes, teeth, mouth interior, posed for the target (a part the model lacks: a speck far away)
-    from ..geometry.rigid import apply
-    from .parts import PARTS, part_meshes
-
-    parts = face.parts(mesh=vertices) if target else face.parts(values.get("expression") or face.model.neutral)
-    meshes = part_meshes(face.model.template)
-    for p in PARTS:
-        path = folder / f"{p}.ply"
-        if p in meshes and p in parts:
-            write_target_mesh(path, apply(parts[p], meshes[p][0]), meshes[p][1])
-        else:
-            write_target_mesh(path, np.array([[1e3, 1e3, 1e3], [1e3 + 1e-6, 1e3, 1e3], [1e3, 1e3 + 1e-6, 1e3]]),
-                              np.array([[0, 1, 2]]))
-        values[f"{p}_mesh"] = str(path)
-    if "envmap" in values:
+    if not xml_path.exists():
+        raise FileNotFoundError(f"{xml_path}: no such scene file")
+    defaults = scene_defaults(xml_path)
+    given = dict(params or {})
+    unknown = [k for k in given if k not in defaults]
+    if unknown:
+        raise KeyError(f"{xml_path}: no parameter {', '.join(map(repr, unknown))}; it has "
+                       f"{', '.join(defaults) or 'none'}")
+    if "envmap" in given:
         from ..environment import GENERATORS, cache_dir, generated
 
-        if values["envmap"] in GENERATORS:  # a generated environment: its cached EXR
-            generated(values["envmap"])
-            values["envmap"] = str(cache_dir() / "environments" / f"{values['envmap']}-128.exr")
-        else:
-            values["envmap"] = str(Path(values["envmap"]).resolve())
-    for key in ("model", "target"):
-        if values.get(key):
-            values[key] = str(Path(values[key]).resolve())
-    here = os.getcwd()
-    try:
-        os.chdir(xml_path.parent)  # relative paths in the scene are relative to the file
-        scene = mi.load_file(str(xml_path.name), **{k: str(v) for k, v in values.items()})
-    finally:
-        os.chdir(here)
+        if given["envmap"] in GENERATORS:  # a generated environment: its cached EXR
+            generated(given["envmap"])
+            given["envmap"] = str(cache_dir() / "environments" / f"{given['envmap']}-128.exr")
+    for key in ("model", "target", "envmap"):   # paths on the command line: relative to the working directory
+        if given.get(key):
+            given[key] = str(Path(given[key]).expanduser().resolve())
+    if given.get("model") and not (Path(given["model"]) / "model.json").exists():
+        raise FileNotFoundError(f"parameter 'model': {given['model']} is not a model folder (no model.json)")
+    values = {**defaults, **given}
+    scene = mi.load_file(str(xml_path), **{k: str(v) for k, v in given.items()})
     return scene, values
 
 
-def render_scene_file(xml_path, output, params: dict | None = None, spp: int | None = None) -> Path:
-    """Render a scene file to ``output`` (.exr, plus a .png beside it)."""
+def render_scene_file(xml_path, output, params: dict | None = None, spp: int | None = None,
+                      threads: int | None = None) -> Path:
+    """Render a scene file to ``output`` (.exr, plus a .png beside it); ``spp`` overrides the sampler's
+    count, ``threads`` the number of CPU threads (LLVM variants)."""
     mi = ensure_plugins()
+    if threads:
+        import drjit as dr
+
+        dr.set_thread_count(int(threads))
     scene, _ = load_scene_file(xml_path, params)
     img = np.asarray(mi.render(scene, spp=spp or 0), np.float32)
     output = Path(output)

@@ -4,7 +4,7 @@ import pytest
 
 from mifacerf.camera import Camera
 
-from .toy import make_toy
+from helpers.toy import make_toy
 
 
 @pytest.fixture(scope="module")
@@ -14,7 +14,7 @@ def toy_model(tmp_path_factory, mi):
 
     mifacerf.register_plugins()  # the tests below load facerf_bsdf by name, as a Mitsuba user does
     root = tmp_path_factory.mktemp("toyapi")
-    cap, _ = make_toy(root, names=("neutral", "stretch"), size=40, n_pos=6, n_str=5)
+    cap = make_toy(root, names=("neutral", "stretch"), size=40, n_pos=6, n_str=5, truth_registration=True).capture
     build_model(cap, root / "model")
     return root / "model"
 
@@ -80,7 +80,7 @@ def test_integrator_plugin_matches_api(toy_model, mi, tmp_path):
     psnr = 10 * np.log10(ref[..., :3][m].max() ** 2 / ((img[..., :3] - ref[..., :3])[m] ** 2).mean())
     assert psnr > 35.0, psnr  # same kernel; differences: sample positions and the emitter's resampling
     # a target mesh of the wrong topology is refused with a clear error
-    with pytest.raises(ValueError, match="template has"):
+    with pytest.raises(Exception, match="parameter 'target'.*the template has"):
         load_scene_file(xml, {"model": str(toy_model), "envmap": "gradient", "target": str(_write_wrong(tmp_path))})
 
 
@@ -140,7 +140,7 @@ def test_bsdf_under_a_directional_light_matches_the_olat_image(toy_model, mi, tm
     from mifacerf.rendering.sensors import sensor_dict
     from mifacerf.synthetic.olat import render_olat
 
-    from .toy import expression_vertices, scene_for
+    from helpers.toy import deform, scene_for
 
     m = Model(toy_model)
     cap = m.cameras[1]
@@ -154,20 +154,22 @@ def test_bsdf_under_a_directional_light_matches_the_olat_image(toy_model, mi, tm
                                    "bsdf": {"type": "facerf_bsdf", "model": str(toy_model), "expression": "neutral"}},
                           "sun": {"type": "directional", "direction": (-d).tolist(), "irradiance": 1.0}})
     img = np.asarray(mi.render(scene))[..., :3]
-    ref = render_olat(mi.load_dict({"type": "scene", **scene_for(expression_vertices("neutral"), mi)}), cam,
+    ref = render_olat(mi.load_dict({"type": "scene", **scene_for(deform("neutral"), mi)}), cam,
                       d[None], spp=4)[0]
     mask = ref.sum(-1) > 1e-3
     assert mask.sum() > 100
     psnr = 10 * np.log10(ref[mask].max() ** 2 / ((img - ref)[mask] ** 2).mean())
-    assert psnr > 27.0, psnr  # measured ~32 dB on this toy (coarse template at the terminator)
+    assert psnr > 27.0, psnr  # measured 30.9 dB on this toy (coarse template at the terminator)
 
 
 def test_integrator_takes_methods_by_name(toy_model, mi):
     """The facerf integrator's method / rank / light_basis choose the renderer's registries' entries by name."""
     import mifacerf.plugins  # noqa: F401  (registers facerf)
     base = {"type": "facerf", "model": str(toy_model)}
-    assert mi.load_dict(base).face.renderer.basis == "voronoi"
-    chosen = mi.load_dict({**base, "light_basis": "hat"}).face.renderer
+    integrator = mi.load_dict(base)
+    assert integrator.renderer(integrator.face).basis == "voronoi"
+    integrator = mi.load_dict({**base, "light_basis": "hat"})
+    chosen = integrator.renderer(integrator.face)
     assert (chosen.basis, chosen.method) == ("hat", "exact")
     with pytest.raises(Exception, match="unknown light basis method 'sh'; choose one of voronoi, hat"):
         mi.load_dict({**base, "light_basis": "sh"})

@@ -1,0 +1,172 @@
+"""Scene files as a Mitsuba user loads them: every ``scenes/*.xml`` with plain ``mi.load_file`` (after
+``import mifacerf``) on the toy model, rendered small; the face as a ``facerf_face`` shape in a dict
+scene; animation through ``mi.traverse`` without reloading or recompiling; bad input named."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SCENES = sorted((Path(__file__).resolve().parents[2] / "scenes").glob("*.xml"))
+
+
+@pytest.fixture(scope="module")
+def plugins(mi):
+    import mifacerf
+
+    return mifacerf.register_plugins()
+
+
+def test_there_are_scene_examples():
+    names = {p.stem for p in SCENES}
+    assert {"face_envmap", "face_with_objects", "face_spot", "face_turntable"} <= names
+    for p in SCENES:   # each documented in a comment at its top
+        assert p.read_text().lstrip().startswith("<!--"), p
+
+
+@pytest.mark.parametrize("xml", SCENES, ids=[p.stem for p in SCENES])
+def test_every_scene_loads_with_plain_mitsuba_and_renders(xml, toy_model, plugins):
+    mi = plugins
+    scene = mi.load_file(str(xml), model=str(toy_model.root), width=32, height=32, spp=4)
+    img = np.asarray(mi.render(scene))
+    assert img.shape[:2] == (32, 32) and np.isfinite(img).all()
+    # the face is there: rays through the image centre hit the facerf_face shape
+    from mifacerf.plugins.facerf_shape import FaceShape
+
+    faces = [s for s in scene.shapes() if isinstance(s, FaceShape)]
+    assert len(faces) == 1
+    sensor = scene.sensors()[0]
+    ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(0.5, 0.5), mi.Point2f(0.5, 0.5))
+    hit = scene.ray_intersect(ray)
+    assert bool(hit.is_valid()[0]) and hit.shape == mi.ShapePtr(faces[0])
+    assert img[12:20, 12:20, :3].mean() > 1e-3   # and it is lit
+
+
+def test_a_dict_scene_needs_only_the_model_folder(toy_model, plugins):
+    mi = plugins
+    from mifacerf.rendering.sensors import sensor_dict
+
+    cam = _camera(32)
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "facerf"}, "sensor": sensor_dict(cam, spp=4),
+                          "sky": {"type": "constant", "radiance": 1.0},
+                          "face": {"type": "facerf_face", "model": str(toy_model.root), "expression": "stretch",
+                                   "bsdf": {"type": "facerf_bsdf"}}})
+    img = np.asarray(mi.render(scene))
+    import mifacerf as mf
+    from mifacerf.rendering.sensors import camera_from_sensor
+
+    ref = mf.load_model(toy_model.root).render("stretch", camera=camera_from_sensor(scene.sensors()[0]),
+                                               env=_constant_env(), spp=4)
+    from scipy.ndimage import binary_erosion
+
+    m = binary_erosion(ref[..., 3] > 0.999)   # away from the limb (other sample positions, the sky behind)
+    assert m.sum() > 100
+    psnr = 10 * np.log10(ref[..., :3][m].max() ** 2 / ((img[..., :3] - ref[..., :3])[m] ** 2).mean())
+    assert psnr > 35.0, psnr
+
+
+def _camera(size):
+    from mifacerf.camera import Camera
+
+    return Camera.look_at("c", [0.1, 0.15, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.5)
+
+
+def _constant_env():
+    from mifacerf.environment import Environment
+
+    return Environment(np.ones((32, 64, 3), np.float32), "constant")
+
+
+def _kernels_compiled(history) -> int:
+    import drjit as dr
+
+    return sum(1 for k in history if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", False))
+
+
+@pytest.mark.parametrize("integrator", ["facerf", "direct"])
+def test_animation_through_traverse_reuses_compiled_kernels(toy_model, plugins, integrator):
+    """Expression weights, a target mesh and the head's pose set through mi.traverse; every frame after the
+    first launches kernels but compiles none (Dr.Jit's kernel history)."""
+    import drjit as dr
+
+    mi = plugins
+    from mifacerf.rendering.sensors import sensor_dict
+
+    m = toy_model
+    cam = _camera(24)
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": integrator}, "sensor": sensor_dict(cam, spp=2),
+                          "sky": {"type": "constant", "radiance": 1.0},
+                          "face": {"type": "facerf_face", "model": str(m.root), "bsdf": {"type": "facerf_bsdf"}}})
+    params = mi.traverse(scene)
+    assert {"face.expression", "face.target", "face.to_world"} <= set(params.keys())
+    shape = [s for s in scene.shapes() if s.id() == "face"][0]
+    stretch = m.vertices[m.expression_index("stretch")]
+    frames = [("expression", shape.weights("neutral=0.8,stretch=0.2"), None),
+              ("expression", shape.weights({"stretch": 1.0}), None),
+              ("target", (0.5 * stretch + 0.5 * m.vertices[0]).reshape(-1).tolist(), None),
+              ("to_world", None, mi.ScalarTransform4f().rotate([0, 1, 0], 10.0)),
+              ("expression", shape.weights("neutral"), mi.ScalarTransform4f().rotate([0, 1, 0], -8.0))]
+    images, compiled, launched = [], [], []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for key, value, pose in frames:
+            dr.kernel_history()   # clears it
+            if value is not None:
+                params[f"face.{key}"] = value
+            if pose is not None:
+                params["face.to_world"] = pose
+            params.update()
+            images.append(np.asarray(mi.render(scene, seed=0)))
+            hist = dr.kernel_history()
+            compiled.append(_kernels_compiled(hist))
+            launched.append(sum(1 for k in hist if k.get("type") == dr.KernelType.JIT))
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert all(n > 0 for n in launched), launched
+    assert compiled[1:] == [0] * (len(frames) - 1), compiled
+    # and the frames differ as the pose does: stretch vs neutral, turned vs not
+    assert np.abs(images[1] - images[0]).max() > 1e-3
+    assert np.abs(images[3] - images[2]).max() > 1e-3
+    # the mesh follows: the target set is the shape's skin
+    v = np.asarray(params["face.vertex_positions"]).reshape(-1, 3)[: m.n_vertices]
+    R = np.asarray(mi.ScalarTransform4f().rotate([0, 1, 0], -8.0).matrix)[:3, :3]
+    np.testing.assert_allclose(v, m.vertices[m.expression_index("neutral")] @ R.T, atol=1e-5)
+
+
+def test_bad_input_names_the_parameter(toy_model, plugins, tmp_path):
+    mi = plugins
+    xml = SCENES[0]
+    with pytest.raises(Exception, match="model folder .*nowhere.* not found"):
+        mi.load_file(str(xml), model=str(tmp_path / "nowhere"))
+    with pytest.raises(Exception, match="parameter 'expression'.*unknown expression.*frown"):
+        mi.load_file(str(xml), model=str(toy_model.root), expression="frown")
+    np.save(tmp_path / "wrong.npy", np.zeros((5, 3)))
+    with pytest.raises(Exception, match="parameter 'target'.*5 vertices; the template has"):
+        mi.load_file(str(xml), model=str(toy_model.root), target=str(tmp_path / "wrong.npy"))
+    scene = mi.load_file(str(xml), model=str(toy_model.root), width=16, height=16)
+    params = mi.traverse(scene)
+    with pytest.raises(ValueError, match="'face.target'.*template has"):
+        params["face.target"] = mi.Float(np.zeros(30, np.float32))
+        params.update()
+    params = mi.traverse(scene)
+    with pytest.raises(ValueError, match="'face.expression'.*3 values given, the model has 2"):
+        params["face.expression"] = [0.2, 0.3, 0.5]
+        params.update()
+    params = mi.traverse(scene)
+    with pytest.raises(ValueError, match="face.to_world.*rigid"):
+        params["face.to_world"] = mi.ScalarTransform4f().scale(2.0)
+        params.update()
+
+
+def test_mifacerf_render_takes_the_familiar_options(toy_model, tmp_path):
+    from click.testing import CliRunner
+
+    from mifacerf.rendering.cli import render_cmd
+
+    out = tmp_path / "f.exr"
+    r = CliRunner().invoke(render_cmd, [str(SCENES[0]), "-D", f"model={toy_model.root}", "-D", "width=16",
+                                        "-D", "height=16", "-D", "envmap=gradient", "--spp", "1", "-t", "2",
+                                        "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.exists() and out.with_suffix(".png").exists()
+    r = CliRunner().invoke(render_cmd, [str(SCENES[0]), "-D", "modle=x"])
+    assert r.exit_code != 0 and "no parameter 'modle'" in r.output
