@@ -205,7 +205,7 @@ def propose_expression(session, name: str) -> dict:
     return {"source": src, "state": state,
             "note": f"from {src}: {n_ok} of {len(coarse)} coarse points found on this expression's dots; "
                     f"{len(state['rotoscope']['curves'])} curves and {len(state['rotoscope']['points'])} marks "
-                    "projected from the coarse morph"}
+                    "projected from the template carried by the dots"}
 
 
 def _blurred(m: np.ndarray, sigma: float) -> np.ndarray:
