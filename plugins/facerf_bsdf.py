@@ -48,6 +48,11 @@ class FaceRFBSDF(mi.BSDF):
 
         self.state = None
         self.shape = None
+        self.light_basis = props["light_basis"] if "light_basis" in props else "voronoi"
+        from mifacerf.environment import LIGHT_BASIS_METHODS
+        from mifacerf.methods import lookup
+
+        lookup(LIGHT_BASIS_METHODS, self.light_basis, "light basis")
         self.n_skin_triangles = None
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
@@ -59,7 +64,7 @@ class FaceRFBSDF(mi.BSDF):
                 verts, W = face.target(mesh=read_target_mesh(target))
             else:
                 verts, W = face.target(expression)
-            self.state = MaterialState(face.model, verts, W)
+            self.state = MaterialState(face.model, verts, W, light_basis=self.light_basis)
         flags = (mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
                  | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
         self.m_components = [flags]
@@ -73,7 +78,7 @@ class FaceRFBSDF(mi.BSDF):
         pose = shape.pose_state
         self.n_skin_triangles = shape.geometry.n_skin_triangles
         if self.state is None or self.state.model is not shape.face.model:
-            self.state = MaterialState(shape.face.model, pose.target, pose.weights)
+            self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis)
         else:
             self.state.update(pose.target, pose.weights)
         shape.listeners.append(lambda s: self.state.update(s.pose_state.target, s.pose_state.weights))

@@ -11,6 +11,15 @@ contains the cell's centre; at run time the cell's triangle is tried first and, 
 lies outside it (near an edge), its clamped weights are used — the error is confined
 to a sliver of one grid cell along the edges. Degenerate layouts (fewer than four
 lights, or all on one great circle) fall back to the nearest light.
+
+Two rules, named as the exact path's light bases (:data:`mifacerf.environment.LIGHT_BASIS_METHODS`), so that
+the material and the exact path agree under the same name: ``hat`` (this class's default) is the interpolation
+above (the hat basis: each direction shared by the three lights of its triangle); ``voronoi`` (the
+material's default, as the exact path's) gives each direction wholly to its nearest light (the spherical-Voronoi cell the exact path
+integrates the environment over). Under ``voronoi`` the material integrates an environment exactly as the
+exact path does (∫ E(ω) F[nearest(ω)] dω = Σ_l F[l] ∫_cell(l) E); a point light moving across the face
+changes the shading in steps at the cell edges. Its point location: per lookup-grid cell the lights nearest
+to the cell's centre, corners and edge midpoints (at most four), of which the kernel takes the nearest.
 """
 from __future__ import annotations
 
@@ -24,9 +33,14 @@ from ..variant import ensure_variant
 class LightInterpolator:
     """``directions`` (L, 3) unit world vectors towards the lights; ``grid_height`` rows of the lookup grid."""
 
-    def __init__(self, directions: np.ndarray, grid_height: int = 128):
+    def __init__(self, directions: np.ndarray, grid_height: int = 128, method: str = "hat"):
         from scipy.spatial import ConvexHull, QhullError
 
+        from ..environment import LIGHT_BASIS_METHODS
+        from ..methods import lookup
+
+        lookup(LIGHT_BASIS_METHODS, method, "light basis")
+        self.method = method
         self.directions = np.asarray(directions, np.float64)
         self.n = len(self.directions)
         self.grid_h, self.grid_w = grid_height, 2 * grid_height
@@ -43,6 +57,7 @@ class LightInterpolator:
             self.inverse = np.zeros((0, 3, 3))
             dirs, _ = latlong_grid(self.grid_h)
             self.grid = np.argmax(dirs.reshape(-1, 3) @ self.directions.T, axis=1)
+            self.candidates = self._nearest_candidates()
             return
         self.triangles = tri
         M = np.stack([self.directions[tri[:, k]] for k in range(3)], axis=2)  # columns = corners
@@ -52,7 +67,25 @@ class LightInterpolator:
         score = lam.min(axis=2)
         score[lam.sum(axis=2) <= 0] = -np.inf  # the antipodal triangle
         self.grid = np.argmax(score, axis=1)
+        self.candidates = self._nearest_candidates()
 
+    def _nearest_candidates(self, n: int = 4) -> np.ndarray:
+        """(cells, n) lights nearest to each grid cell's centre, corners and edge midpoints (repeated to n)."""
+        from ..environment import uv_to_direction
+
+        h, w = self.grid_h, self.grid_w
+        yy, xx = np.mgrid[0:h, 0:w]
+        out = []
+        for dy in (0.0, 0.5, 1.0):
+            for dx in (0.0, 0.5, 1.0):
+                uv = np.stack([(xx + dx) / w, np.clip((yy + dy) / h, 1e-6, 1 - 1e-6)], -1).reshape(-1, 2)
+                out.append(np.argmax(uv_to_direction(uv) @ self.directions.T, axis=1))
+        near = np.stack(out, 1)   # (cells, 9)
+        cand = np.empty((len(near), n), np.int64)
+        for i, row in enumerate(near):
+            u = list(dict.fromkeys(row.tolist()))[:n]
+            cand[i] = (u * n)[:n]
+        return cand
     def _cell(self, d: np.ndarray) -> np.ndarray:
         uv = direction_to_uv(d)
         x = np.minimum((uv[:, 0] * self.grid_w).astype(np.int64), self.grid_w - 1)
@@ -64,6 +97,14 @@ class LightInterpolator:
         d = np.asarray(directions, np.float64).reshape(-1, 3)
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         cell = self._cell(d)
+        if self.method == "voronoi":
+            idx = np.zeros((len(d), 3), np.int64)
+            cand = self.candidates[cell]
+            dots = np.einsum("nj,nkj->nk", d, self.directions[cand])
+            idx[:, 0] = cand[np.arange(len(d)), np.argmax(dots, axis=1)]
+            w = np.zeros((len(d), 3))
+            w[:, 0] = 1.0
+            return idx, w
         if self.nearest_only:
             idx = np.zeros((len(d), 3), np.int64)
             idx[:, 0] = np.argmax(d @ self.directions.T, axis=1)
@@ -83,6 +124,8 @@ class LightInterpolator:
         self._tri_dev = to_jit(mi.UInt32, self.triangles.reshape(-1).astype(np.uint32) if len(self.triangles)
                                else np.zeros(3, np.uint32))
         self._inv_dev = to_jit(mi.Float, self.inverse.reshape(-1) if len(self.inverse) else np.zeros(9))
+        self._cand_dev = to_jit(mi.UInt32, self.candidates.reshape(-1).astype(np.uint32))
+        self._dirs_dev = to_jit(mi.Float, self.directions.reshape(-1))
         return self
 
     def weights_jit(self, d, active=True):
@@ -98,6 +141,17 @@ class LightInterpolator:
         v = dr.safe_acos(d.y) * (1.0 / np.pi)
         x = dr.minimum(mi.UInt32(u * self.grid_w), self.grid_w - 1)
         y = dr.minimum(mi.UInt32(v * self.grid_h), self.grid_h - 1)
+        if self.method == "voronoi":
+            cell = y * self.grid_w + x
+            best, best_dot = mi.UInt32(0), mi.Float(-2.0)
+            for k in range(self.candidates.shape[1]):
+                c = dr.gather(mi.UInt32, self._cand_dev, cell * self.candidates.shape[1] + k, active)
+                dot = sum(dr.gather(mi.Float, self._dirs_dev, c * 3 + j, active) * d[j] for j in range(3))
+                better = dot > best_dot
+                best = dr.select(better, c, best)
+                best_dot = dr.select(better, dot, best_dot)
+            zero = dr.zeros(mi.UInt32, dr.width(best))
+            return [best, zero, zero], [dr.full(mi.Float, 1.0, dr.width(best)), mi.Float(0), mi.Float(0)]
         t = dr.gather(mi.UInt32, self._grid_dev, y * self.grid_w + x, active)
         if self.nearest_only:
             zero = dr.zeros(mi.UInt32, dr.width(t))

@@ -14,7 +14,9 @@ with ``R = R_ts`` the vertex's local rotation into source ``s`` (§6.1), ``cw`` 
 weights of the rotated view (:class:`.views.ViewSampler`, per hit; cameras that do not
 see the vertex in ``s`` drop out), ``x_{s,c}`` the projection of the hit's surface point
 in the source geometry into camera ``c`` (bilinear over texels), and ``interp`` the
-light-stage interpolation (:class:`.light_interp.LightInterpolator`). The value is
+light-stage rule (:class:`.light_interp.LightInterpolator`, named as the exact path's light basis:
+``voronoi``, the default — the nearest light, so that an environment is integrated as the exact path
+does — or ``hat``, barycentric between the three lights round the direction). The value is
 radiance per unit irradiance — Mitsuba's "BSDF × cosine". Per vertex at most
 ``max_slots`` source expressions (the largest weights) are kept.
 
@@ -39,7 +41,8 @@ class MaterialState:
     ``model``: :class:`~.model.Model`; ``target`` (T, 3); ``weights`` (T, S) per-vertex expression weights.
     """
 
-    def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None):
+    def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
+                 light_basis: str = "voronoi"):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -54,7 +57,8 @@ class MaterialState:
         self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
         self.n_lights = model.n_lights
         self.views = ViewSampler.from_cameras(model.cameras)
-        self.lights = LightInterpolator(model.light_directions).to_device()
+        self.light_basis = light_basis
+        self.lights = LightInterpolator(model.light_directions, method=light_basis).to_device()
         self.update(target, weights)
 
     def update(self, target: np.ndarray, weights: np.ndarray) -> None:
