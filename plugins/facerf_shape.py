@@ -26,7 +26,8 @@ Scene parameters (``mi.traverse(scene)``, prefix the shape's id), each re-posing
 * ``expression`` — ``mi.Float`` of the model's expression weights, in ``model.expressions`` order
   (a list of numbers works; :meth:`FaceShape.weights` turns a name / ``"a=w,b=w"`` / dict into one);
 * ``target`` — ``mi.Float`` of 3T skin vertex coordinates (template topology, model frame): a target mesh;
-* ``to_world`` — the rigid pose (``mi.ScalarTransform4f`` or ``mi.Transform4f``).
+* ``to_world`` — the rigid pose (:meth:`FaceShape.transform` of a ``mi.ScalarTransform4f`` or 4x4 matrix:
+  a plain ``ScalarTransform4f`` works as well but has Mitsuba compile a tiny kernel per distinct pose).
 
 Setting ``expression`` blends captured expressions (``target`` becomes that blend); setting
 ``target`` alone takes the §5 weights of that mesh. The sizes of every array stay fixed, so an
@@ -101,9 +102,22 @@ class FaceShape(mi.Mesh):
             bsdf.attach(self)
 
     # ------------------------------------------------------------------ state
-    def weights(self, spec) -> list:
-        """A name / ``"a=w,b=w"`` / dict / S numbers → the value to set ``<id>.expression`` to (validated)."""
-        return self.geometry.expression_vector(spec).tolist()
+    def weights(self, spec):
+        """A name / ``"a=w,b=w"`` / dict / S numbers → the value to set ``<id>.expression`` to (validated; a
+        ``mi.Float`` in device memory, so that no number is baked into a kernel)."""
+        return to_jit(mi.Float, self.geometry.expression_vector(spec))
+
+    @staticmethod
+    def transform(matrix):
+        """The value to set ``<id>.to_world`` to, from a 4x4 matrix-like or a ``mi.ScalarTransform4f``, held in
+        device memory (``dr.make_opaque``): assigning a ``ScalarTransform4f`` directly works too, but Mitsuba
+        then bakes its numbers into a small kernel that is compiled anew for every distinct pose."""
+        M = np.asarray(matrix.matrix if hasattr(matrix, "matrix") else matrix, np.float32).reshape(4, 4)
+        m = mi.Matrix4f(M)
+        dr.make_opaque(m)
+        t = mi.Transform4f(m)
+        dr.make_opaque(t)
+        return t
 
     @property
     def label(self) -> np.ndarray:

@@ -8,7 +8,9 @@ passes' mean against the exact image and the noise floor (PSNR of pass 1 against
 two independent material renders agree to), over the face's pixels away from its outline (eroded
 coverage); the mean brightness ratio material / exact; seconds per pass.
 
-Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--env sky]``.
+Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--env sky]``;
+``--animation [--integrators facerf,direct] [--size 32]``: an animation loop through ``mi.traverse``
+(expression and pose per frame), kernels compiled / launched and seconds per frame (:func:`animation`).
 """
 from __future__ import annotations
 
@@ -74,6 +76,48 @@ def compare(model, env: str = "sky", integrators=("direct", "path"), size: int =
     return rows
 
 
+def animation(model, integrator: str = "facerf", frames: int = 10, size: int = 32, spp: int = 4) -> list[dict]:
+    """Render ``frames`` frames of one scene, changing the expression weights and the head's pose through
+    ``mi.traverse`` before each; per frame the kernels launched and compiled (Dr.Jit's kernel history) and
+    the seconds of update + render."""
+    import drjit as dr
+
+    from ..camera import Camera
+    from ..variant import ensure_plugins
+
+    mi = ensure_plugins()
+    camera = Camera.look_at("eval", [0.12, 0.1, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.0)
+    from ..rendering.sensors import sensor_dict
+
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": integrator}, "sensor": sensor_dict(camera, spp=spp),
+                          "light": {"type": "constant", "radiance": 1.0},
+                          "face": {"type": "facerf_face", "model": str(model), "bsdf": {"type": "facerf_bsdf"}}})
+    params = mi.traverse(scene)
+    shape = [s for s in scene.shapes() if s.id() == "face"][0]
+    names = shape.face.model.expressions
+    rows = []
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for k in range(frames):
+            dr.kernel_history()
+            t0 = time.perf_counter()
+            a = k / max(frames - 1, 1)
+            w = np.zeros(len(names))
+            w[0], w[-1] = 1 - a, a
+            params["face.expression"] = shape.weights(w)
+            params["face.to_world"] = shape.transform(mi.ScalarTransform4f().rotate([0, 1, 0], 20.0 * a - 10.0))
+            params.update()
+            img = mi.render(scene, seed=k)
+            dr.eval(img)
+            seconds = time.perf_counter() - t0
+            hist = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT]
+            rows.append({"frame": k, "launched": len(hist), "compiled": sum(1 for h in hist if not h.get("cache_hit")),
+                         "seconds": round(seconds, 3)})
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return rows
+
+
 def format_rows(rows: list[dict]) -> str:
     out = ["| integrator | spp | PSNR vs exact (dB) | noise floor (dB) | mean material / exact | s / pass |",
            "|---|---|---|---|---|---|"]
@@ -95,7 +139,13 @@ def main(argv=None) -> None:
     ap.add_argument("--expression", default=None)
     ap.add_argument("--integrators", default="direct,path")
     ap.add_argument("--exact-basis", default="voronoi")
+    ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
     a = ap.parse_args(argv)
+    if a.animation:
+        for integ in a.integrators.split(","):
+            for r in animation(a.model, integ, size=a.size, spp=4):
+                print(integ, r)
+        return
     print(format_rows(compare(a.model, a.env, a.integrators.split(","), a.size, a.spp, a.expression,
                               exact_basis=a.exact_basis)))
 
