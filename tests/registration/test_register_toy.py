@@ -10,11 +10,17 @@ from mifacerf.registered import Registration
 from mifacerf.registration import RegistrationInputError, register_capture
 from mifacerf.geometry.visibility import Visibility
 
-from . import toy
-from .conftest import errors_px
+from helpers import toy
 
 # every test here needs the toy capture (tests/registration/conftest.py), ~20 s to render and register
 pytestmark = pytest.mark.slow
+
+
+def errors_px(reg_expr, truth, cams, ids):
+    """3-D errors of vertices ``ids`` in pixel footprints (mean over cameras)."""
+    fp = np.mean([np.abs(cam.world_to_camera(truth[ids])[:, 2]) / np.sqrt(cam.K[0, 0] * cam.K[1, 1])
+                  for cam in cams], axis=0)
+    return np.linalg.norm(reg_expr.vertices[ids] - truth[ids], axis=1) / fp
 
 
 def test_registers_the_dots(toy_registered):

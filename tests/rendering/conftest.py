@@ -1,7 +1,7 @@
 """Fixtures shared by the rendering tests."""
 import pytest
 
-from .toy import make_toy
+from helpers.toy import make_toy
 
 
 @pytest.fixture(scope="session")
@@ -11,6 +11,6 @@ def toy_model(tmp_path_factory, mi):
     from mifacerf.rendering.model import Model
 
     root = tmp_path_factory.mktemp("toy_model")
-    cap, _ = make_toy(root, names=("neutral", "stretch"), size=32, n_pos=6, n_str=5)
+    cap = make_toy(root, names=("neutral", "stretch"), size=32, n_pos=6, n_str=5, truth_registration=True).capture
     build_model(cap, root / "model")
     return Model(root / "model")

@@ -1,17 +1,29 @@
-"""A toy subject for registration tests, independent of the synthetic head: an ellipsoidal
-'head' with painted yellow dots (a texture painted by 3-D distance, so dots are round discs
-on the surface) in a few smoothly deformed 'expressions', photographed by a small stage.
+"""The toy light-stage capture of the registration and rendering tests, independent of the synthetic
+head: an ellipsoidal 'head' with painted yellow dots (a texture painted by 3-D distance, so dots are
+round discs on the surface) in a few smoothly deformed 'expressions', photographed by a small stage.
 
-Every dot centre is a vertex of the fine render mesh, so its position in every expression
-is known exactly. The template is the dots plus a few non-dot vertices; the synthetic user
-(:func:`mifacerf.synthetic.hand_inputs.make_hand_inputs`) writes the hand inputs.
+The fine render mesh is icosphere 5 on the ellipsoid. Both templates are subsets of its vertices, so
+their position in every expression is known exactly:
+
+- the registration template (:func:`template_dict`): the dots (every dot centre is a fine vertex) plus
+  a few non-dot vertices. The synthetic user (:func:`mifacerf.synthetic.hand_inputs.make_hand_inputs`)
+  writes the hand inputs of every capture.
+- the coarse template: icosphere 2, whose vertices are the first ``N_T`` = 162 fine vertices, all
+  round the head. ``make_toy(..., truth_registration=True)`` writes the capture's registration folder
+  from the truth on it (test code: it stands in for a perfect registration, so that rendering is
+  tested apart from registration).
 """
 from __future__ import annotations
+
+import functools
+from typing import NamedTuple
 
 import numpy as np
 import trimesh
 
-from mifacerf.capture_folder import CaptureWriter, ExpressionEntry
+from mifacerf.capture_folder import Capture, CaptureWriter, ExpressionEntry
+from mifacerf.registered import RegisteredExpression, RegistrationWriter
+from mifacerf.geometry.meshscene import MeshScene
 from mifacerf.rig import LightStage, Rig, camera_ring
 from mifacerf.synthetic.hand_inputs import TruthExpression, make_hand_inputs
 from mifacerf.synthetic.olat import render_olat
@@ -26,19 +38,34 @@ DIRS = np.asarray(UNIT.vertices, np.float64)
 FACES = np.asarray(UNIT.faces, np.int64)
 REST = DIRS * AXES
 
+COARSE_FACES = np.asarray(trimesh.creation.icosphere(2, radius=1.0).faces, np.int64)
+N_T = int(COARSE_FACES.max()) + 1
+assert np.allclose(trimesh.creation.icosphere(2, radius=1.0).vertices, DIRS[:N_T])
+
 CATEGORIES = {"neutral": "neutral", "stretch": "mouth", "bulge": "emotion", "turn": "head_pose",
               "pucker": "viseme"}
 
 
+class Toy(NamedTuple):
+    capture: object             # Path of ROOT/capture
+    rig: Rig
+    truth: dict                 # {expression: (T, 3) true positions of the registration template}
+
+
 def _pick_dots(min_dist=0.011):
     """Dot centres: fine vertices on the front of the head, greedily spread ``min_dist`` apart."""
+    from scipy.spatial import cKDTree
+
     rng = np.random.default_rng(3)
     front = np.flatnonzero((DIRS[:, 2] > 0.25) & (np.abs(DIRS[:, 1]) < 0.85))
     order = rng.permutation(front)
+    tree, row = cKDTree(REST[front]), {v: k for k, v in enumerate(front)}
+    taken = np.zeros(len(front), bool)  # within min_dist of a chosen dot
     chosen = []
     for i in order:
-        if all(np.linalg.norm(REST[i] - REST[j]) > min_dist for j in chosen):
+        if not taken[row[i]]:
             chosen.append(i)
+            taken[tree.query_ball_point(REST[i], min_dist)] = True
     return np.array(sorted(chosen))
 
 
@@ -53,6 +80,8 @@ def deform(name: str, X: np.ndarray | None = None) -> np.ndarray:
     if name == "stretch":   # jaw-like: the lower half stretches down
         s = 1.0 + 0.10 * np.clip(-X[:, 1] / AXES[1], 0, 1) ** 2
         return X * np.stack([np.ones(len(X)), s, np.ones(len(X))], 1)
+    if name == "mix":       # an in-between, never captured: half-way from the neutral to the stretch
+        return 0.5 * (deform("neutral", X) + deform("stretch", X))
     if name == "bulge":     # a cheek bulging out and up by ~5 mm
         c = np.array([0.04, -0.02, 0.07])
         g = np.exp(-np.sum((X - c) ** 2, 1) / (2 * 0.025 ** 2))
@@ -71,8 +100,10 @@ def deform(name: str, X: np.ndarray | None = None) -> np.ndarray:
     raise KeyError(name)
 
 
+@functools.lru_cache(maxsize=1)
 def texture(res=1024):
-    """(res, 2 res, 3) texture over (azimuth, polar) with the dots painted by 3-D distance."""
+    """(res, 2 res, 3) texture over (azimuth, polar) with the dots painted by 3-D distance (cached: do not
+    modify the array)."""
     h, w = res, 2 * res
     v = (np.arange(h) + 0.5) / h
     u = (np.arange(w) + 0.5) / w
@@ -82,8 +113,9 @@ def texture(res=1024):
     P = d * AXES
     from scipy.spatial import cKDTree
 
-    dist, _ = cKDTree(REST[DOTS]).query(P.reshape(-1, 3))
     texel = 2 * np.pi * AXES.max() / w
+    # texels farther than DOT_RADIUS + texel from every dot are skin (cover 0): no need of their distance
+    dist, _ = cKDTree(REST[DOTS]).query(P.reshape(-1, 3), distance_upper_bound=DOT_RADIUS + texel)
     cover = np.clip((DOT_RADIUS - dist) / (1.5 * texel) + 0.5, 0, 1).reshape(h, w, 1)
     rng = np.random.default_rng(1)
     skin = SKIN * (1 + 0.06 * (rng.random((h, w, 1)) - 0.5))
@@ -96,20 +128,20 @@ def uvs():
     return np.stack([phi / (2 * np.pi) + 0.5, theta / np.pi], 1)
 
 
-def scene_for(vertices, mi, tex):
+def scene_for(vertices, mi) -> dict:
+    """Scene-dict entries ``{"toy": mesh}`` of the textured fine mesh at ``vertices`` (fine, (V, 3))."""
     import drjit as dr
 
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "principled", "roughness": 0.45, "specular": 0.5,
-                                  "base_color": {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True}})
+                                  "base_color": {"type": "bitmap", "bitmap": mi.Bitmap(texture()), "raw": True}})
     mesh = mi.Mesh("toy", len(vertices), len(FACES), props=props, has_vertex_texcoords=True)
     p = mi.traverse(mesh)
     p["vertex_positions"] = dr.ravel(mi.Point3f(np.ascontiguousarray(vertices.T, dtype=np.float32)))
     p["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(FACES.T, dtype=np.uint32)))
-    # flip v: Mitsuba's bitmap row 0 is v = 0 at the top? (uv (0,0) is the first texel row)
     p["vertex_texcoords"] = dr.ravel(mi.Point2f(np.ascontiguousarray(uvs().T, dtype=np.float32)))
     p.update()
-    return mi.load_dict({"type": "scene", "toy": mesh})
+    return {"toy": mesh}
 
 
 def template_dict():
@@ -136,20 +168,36 @@ def template_dict():
             "dot_radius": DOT_RADIUS}, ids
 
 
-def make_toy(root, names=("neutral", "stretch", "bulge"), size=96, n_pos=8, n_str=6, seed=0):
-    """Write ROOT/capture (with hand/) and return (capture path, truth {name: (T, 3) template truth})."""
+def write_truth_registration(capture, names) -> None:
+    """CAPTURE/registration written from the truth on the coarse template (test code only)."""
+    cap = Capture(capture)
+    cams = cap.rig.cameras
+    template = {"n_vertices": N_T, "triangles": COARSE_FACES.tolist(), "kinds": ["dot"] * N_T, "regions": {}}
+    rw = RegistrationWriter(capture / "registration", cap, template)
+    for n in names:
+        v = deform(n)[:N_T]
+        ms = MeshScene(v, COARSE_FACES)
+        uv = np.stack([c.project(v)[0] for c in cams]).astype(np.float32)
+        vis = np.stack([ms.visible_from(v, c) for c in cams])
+        rw.write_expression(RegisteredExpression(n, v, np.ones(N_T), uv, vis), {"registered": N_T})
+
+
+def make_toy(root, names=("neutral", "stretch", "bulge"), size=96, n_pos=8, n_str=6, seed=0,
+             truth_registration=False) -> Toy:
+    """Write ROOT/capture (images, rig, hand/ inputs; with ``truth_registration`` also
+    ROOT/capture/registration from the truth) of the expressions ``names``, photographed by three
+    ``size`` px cameras under an ``n_pos`` x ``n_str`` light arm."""
     mi = ensure_variant()
     lights = LightStage.semicircular_arm(n_pos, n_str, irradiance_spread=0.05, seed=2)
     cams = camera_ring([(-35, -8), (0, 12), (35, -8)], width=size, height=size, target=(0, 0, 0.0),
                        face_height=0.22, distance=1.0)
     rig = Rig(lights, cams)
     w = CaptureWriter(root / "capture", rig, [ExpressionEntry(n, CATEGORIES.get(n, "other")) for n in names])
-    tex = texture()
     tpl, ids = template_dict()
     truths, truth_T = [], {}
     for n in names:
         V = deform(n)
-        scene = scene_for(V, mi, tex)
+        scene = mi.load_dict({"type": "scene", **scene_for(V, mi)})
         for c in cams:
             imgs = render_olat(scene, c, lights.directions, lights.irradiance, spp=4)
             for l in range(len(lights)):
@@ -158,4 +206,6 @@ def make_toy(root, names=("neutral", "stretch", "bulge"), size=96, n_pos=8, n_st
         truths.append(TruthExpression(n, V[ids], (V, FACES)))
     make_hand_inputs(root / "capture", tpl, truths, rig, seed=seed)
     w.finish()
-    return root / "capture", truth_T
+    if truth_registration:
+        write_truth_registration(root / "capture", names)
+    return Toy(root / "capture", rig, truth_T)
