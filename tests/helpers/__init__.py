@@ -6,6 +6,8 @@ pyproject's ``[tool.pytest.ini_options]``; the conftest.py files hold only fixtu
   rendering tests.
 - ``helpers.capture``: tiny rigs, simulated labs and sessions of the capture tests; the strobe
   controller's recorded transcript.
+- ``helpers.tracking``: the tracking tests' synthetic world (cameras, a truth registration) and fault
+  injection on copies of a performance folder.
 - ``helpers.source_tree``: the source tree as installed modules (packaging, architecture and
   package-root tests).
 """

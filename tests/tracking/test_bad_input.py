@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import copy_performance, paint_out_dot
+from helpers.tracking import copy_performance, paint_out_dot
 
 # every test here needs the tracking world (tests/tracking/conftest.py), a fixture of more than 20 s
 pytestmark = pytest.mark.slow

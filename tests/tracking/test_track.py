@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from conftest import copy_performance
+from helpers.tracking import copy_performance
 from openwatch import watch_opens
 
 # every test here needs the tracking world (tests/tracking/conftest.py), a fixture of more than 20 s
