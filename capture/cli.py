@@ -147,7 +147,7 @@ def _new_session(out, simulate, preset_name, positions, strobes, resolution, n_e
                  sim_opts):
     from mifacerf.capture.expressions import session_expressions
     from mifacerf.capture.session import CaptureSession, SessionError
-    from mifacerf.capture_folder import Radiometry
+    from mifacerf.formats.capture import Radiometry
     from mifacerf.rig import LightStage, Rig, camera_ring, CAMERA_LAYOUTS, preset
 
     try:
@@ -277,7 +277,7 @@ def geometry_cmd(boards, out, model, principal_prior, no_world, truth, apply_to)
     from mifacerf.capture.calibration.zhang2000 import (CalibrationError, calibrate_rig, detect_views, pose_errors,
                                                         relative_pose_errors)
     from mifacerf.capture.simulation.boards import read_board_dataset
-    from mifacerf.capture_folder import write_json_atomic
+    from mifacerf.formats.files import write_json_atomic
 
     try:
         board, images, desc = read_board_dataset(boards)
@@ -362,7 +362,8 @@ def response_cmd(charts, out, method, truth, apply_to):
 
     from mifacerf.capture.calibration.debevec1997 import curve_error
     from mifacerf.capture.calibration.radiometric import RadiometryError, calibrate_radiometry, to_json
-    from mifacerf.capture_folder import Radiometry, write_json_atomic
+    from mifacerf.formats.capture import Radiometry
+    from mifacerf.formats.files import write_json_atomic
     from mifacerf.imageio import ImageFileError
 
     try:

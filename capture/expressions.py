@@ -2,7 +2,7 @@
 poses, eye positions and coverage of seldom-seen areas, 60 in all as in the paper."""
 from __future__ import annotations
 
-from ..capture_folder import ExpressionEntry
+from ..formats.capture import ExpressionEntry
 
 #: (name, category) in capture order; the neutral face comes first.
 PAPER_SESSION: list[tuple[str, str]] = (

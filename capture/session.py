@@ -5,7 +5,7 @@ stage once (in as many runs as it takes: a strobe that misfired, a frame a camer
 dropped or a controller that reset mid-sequence only costs re-firing the lights
 still missing), checks the take for subject motion (:mod:`mifacerf.capture.motion`)
 and repeats a blurred take. Accepted takes become the capture folder's images; the
-manifest is written last by :class:`mifacerf.capture_folder.CaptureWriter`.
+manifest is written last by :class:`mifacerf.formats.capture.CaptureWriter`.
 
 On disk (``CAPTURE/``)::
 
@@ -41,7 +41,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..capture_folder import (CaptureError, CaptureWriter, ExpressionEntry, Radiometry, sha256_file)
+from ..formats.capture import CaptureError, CaptureWriter, ExpressionEntry, Radiometry
+from ..formats.files import sha256_file
 from ..imageio import ImageFileError, read_exr, write_exr
 from ..rig import Rig
 from .hardware.controller import (CommandRefused, ControllerError, ControllerTimeout, DeviceReset,
@@ -758,7 +759,7 @@ class CaptureSession:
 
 def verify_capture(root) -> tuple[int, list[str]]:
     """(number of images that verify by checksum, problems) for the capture folder ``root``."""
-    from ..capture_folder import Capture
+    from ..formats.capture import Capture
 
     cap = Capture(root)
     problems = cap.verify(checksums=True)

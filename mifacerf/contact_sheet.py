@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture_folder import Capture
+from .formats.capture import Capture
 from .environment import generated, light_basis, relight
 from .imageio import write_png
 from .pictures import grid, label, tile8

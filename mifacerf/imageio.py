@@ -8,39 +8,17 @@ never leaves a half-written file under the final name.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from .formats.files import atomic_target, atomic_write_bytes
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
 class ImageFileError(OSError):
     """A missing, truncated, corrupt or inconsistent image file; the message names it."""
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _atomic_target(path: Path):
-    """A temporary path next to ``path`` for writers that need a file name."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
 
 
 def write_exr(path: str | os.PathLike, image: np.ndarray, half: bool = True,
@@ -69,7 +47,7 @@ def write_exr(path: str | os.PathLike, image: np.ndarray, half: bool = True,
     if image.shape[2] == 4:
         channels["A"] = np.ascontiguousarray(data[..., 3])
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = _atomic_target(path)
+    tmp = atomic_target(path)
     try:
         with OpenEXR.File(header, channels) as f:
             f.write(str(tmp))

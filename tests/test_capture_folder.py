@@ -3,8 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from mifacerf.capture_folder import (Capture, CaptureError, CaptureWriter, ExpressionEntry,
-                                     Radiometry)
+from mifacerf.formats.capture import Capture, CaptureError, CaptureWriter, ExpressionEntry, Radiometry
 from mifacerf.imageio import ImageFileError, read_exr, write_exr
 from mifacerf.rig import LightStage, Rig, camera_ring
 

@@ -4,7 +4,7 @@
 and/or ``radiometry`` blocks in ``manifest.json`` and appends a ``calibration`` record
 (what, from where, when, the accuracy report). The previous manifest is kept as
 ``manifest.<UTC time>.json`` — nothing is silently overwritten — and the new one is
-written atomically. :class:`mifacerf.capture_folder.Capture` then applies the
+written atomically. :class:`mifacerf.formats.capture.Capture` then applies the
 radiometry to every image it returns.
 """
 from __future__ import annotations
@@ -15,7 +15,8 @@ import time
 from pathlib import Path
 
 from ...camera import Camera
-from ...capture_folder import CaptureError, Radiometry, write_json_atomic
+from ...formats.capture import CaptureError, Radiometry
+from ...formats.files import write_json_atomic
 
 
 def apply_to_capture(capture_root, *, geometry: dict | None = None, radiometry: dict | None = None,

@@ -8,7 +8,7 @@ RGB ``c`` per patch gives, by least squares over the 24 patches,
 
     radiance ≈ M_full @ c,
 
-factored for :class:`mifacerf.capture_folder.Radiometry` as ``exposure`` (camera
+factored for :class:`mifacerf.formats.capture.Radiometry` as ``exposure`` (camera
 linear units per unit luminance) and ``colour_matrix = exposure * M_full``, which maps a
 camera-neutral ``(1, 1, 1)`` to unit luminance.
 

@@ -14,7 +14,7 @@ unknown logs. Least squares, weighted by a hat function of z (the ends of the ra
 are noisy or clipped), with a second-difference smoothness penalty ``smoothness``;
 the scale is fixed by ``g(z_ref) = 0``. The recovered ``f^-1`` is made monotone and
 returned as a curve ``{"x": recorded, "y": linear}`` for
-:class:`mifacerf.capture_folder.Radiometry`, normalised so ``y = 1`` at ``x = 1``.
+:class:`mifacerf.formats.capture.Radiometry`, normalised so ``y = 1`` at ``x = 1``.
 """
 from __future__ import annotations
 

@@ -11,7 +11,7 @@ with photographs and hand-clicked chart corners). Per camera:
    unknown patch radiance — Debevec & Malik's original setting).
 2. **Colour matrix and exposure** from the ColorChecker (:mod:`.colour_correction`).
 
-Output: a :class:`mifacerf.capture_folder.Radiometry` per camera (``exposure``,
+Output: a :class:`mifacerf.formats.capture.Radiometry` per camera (``exposure``,
 ``colour_matrix``, ``response``) plus a report (CIEDE2000 of the corrected checker,
 the response fit's residual), as the JSON ``mifacerf calibrate response`` writes and
 ``mifacerf capture --radiometry`` / ``--apply`` record in a capture's manifest.
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...capture_folder import Radiometry
+from ...formats.capture import Radiometry
 from ...imageio import read_exr
 from ...rig import Rig
 from .charts import ChartLayout, colorchecker_reference, grey_reference, patch_means

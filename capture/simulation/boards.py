@@ -141,7 +141,7 @@ def write_board_dataset(root, cameras: list[Camera], board: BoardSpec, *, n_view
     import json
     from pathlib import Path
 
-    from ...capture_folder import write_json_atomic
+    from ...formats.files import write_json_atomic
     from ...imageio import write_png
 
     root = Path(root)

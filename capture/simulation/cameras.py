@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...camera import Camera
-from ...capture_folder import Radiometry
+from ...formats.capture import Radiometry
 from ...rig import Rig
 from ..hardware.cameras import CameraSystem, Frame
 from .device import Trigger

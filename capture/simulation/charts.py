@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ...camera import Camera, cameras_focus
-from ...capture_folder import write_json_atomic
+from ...formats.files import write_json_atomic
 from ...imageio import write_exr
 from ...rig import Rig
 from ..calibration.charts import (COLORCHECKER_LAYOUT, FRAME_REFLECTANCE, GREY_LAYOUT, ChartLayout,

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...camera import Camera
-from ...capture_folder import ExpressionEntry
+from ...formats.capture import ExpressionEntry
 from ...rig import Rig
 
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import Capture
+from ..formats.capture import Capture
 from ..environment import Environment, light_basis, relight, resolve
 from .masks import classify_pixels
 from .metrics import psnr

@@ -30,7 +30,7 @@ def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, rad
     import json
     from pathlib import Path
 
-    from ..capture_folder import CaptureError
+    from ..formats.capture import CaptureError
     from .register import Options, RegistrationInputError, register_capture
 
     opt = Options(remove_dots=not no_dot_removal, dot_fill=dot_fill)

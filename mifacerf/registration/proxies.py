@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..capture_folder import Capture
+from ..formats.capture import Capture
 from ..rig import LightStage
 
 DEFAULT_CONE_DEG = 60.0

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import Capture
-from ..registered import Registration
+from ..formats.capture import Capture
+from ..formats.registration import Registration
 from ..geometry.meshscene import MeshScene
 from .parts import build_part_fields, choose_references, part_sources, part_visibility
-from .model import ModelWriter
+from ..formats.model import ModelWriter
 
 
 def template_arrays(template: dict) -> dict:

@@ -20,10 +20,10 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
     """Assemble the relightable morphable model from a registered capture."""
     from tqdm.auto import tqdm
 
-    from ..capture_folder import CaptureError
-    from ..registered import RegistrationError
+    from ..formats.capture import CaptureError
+    from ..formats.registration import RegistrationError
     from .build import build_model
-    from .model import ModelError
+    from ..formats.model import ModelError
 
     try:
         path = build_model(capture, out, registration, expressions.split(",") if expressions else None,

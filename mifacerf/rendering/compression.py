@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..capture_folder import write_json_atomic
+from ..formats.files import write_json_atomic
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
 

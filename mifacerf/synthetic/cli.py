@@ -22,7 +22,7 @@ import click
 @click.option("--performance-size", type=int, default=192, show_default=True, help="Video resolution (square).")
 def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size):
     """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."""
-    from ..capture_folder import CaptureError
+    from ..formats.capture import CaptureError
     from .synth import synthesize
 
     reuse = performance is not None and not overwrite and (Path(out) / "capture" / "manifest.json").exists()

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import write_json_atomic
+from ..formats.files import write_json_atomic
 from ..geometry.footprint import centre_footprint
 from ..rig import Rig
 

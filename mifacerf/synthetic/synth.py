@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import CaptureError, CaptureWriter, ExpressionEntry, sha256_file, write_json_atomic
+from ..formats.capture import CaptureError, CaptureWriter, ExpressionEntry
+from ..formats.files import sha256_file, write_json_atomic
 from ..rig import Rig, RigPreset, preset as get_preset
 from .olat import render_olat
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera, ring_camera
-from ..capture_folder import Capture
+from ..formats.capture import Capture
 from ..environment import Environment, resolve
 from .synth import load_subject, read_truth
 from .truth import render_truth

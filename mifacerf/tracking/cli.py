@@ -25,7 +25,7 @@ import click
               help="Also write TRACK/overlay_F<frame>_<camera>.png (tracked dots over the video) for this frame.")
 def track_cmd(performance, out, model, frames, smooth, overlays):
     """Track the dots of a multi-view PERFORMANCE; write the per-frame target mesh (paper §6.4)."""
-    from .folder import PerformanceError
+    from ..formats.performance import PerformanceError
     from .track import TrackError, track_performance
     from .track3d import Options
 

@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..capture_folder import write_json_atomic
+from ..formats.files import write_json_atomic
 from ..registration.contours import propagate, rings
 from ..registration.hand import Template, read_hand_inputs
 from ..geometry.schaefer2006 import mls_affine
 from ..stats import median_p95
 from . import health as HL
-from .folder import PerformanceFolder
+from ..formats.performance import PerformanceFolder
 from .keyframes import LID_MARGINS, LIP_MARGINS, eye_tracks, margin_tracks
 from .track3d import DotTracker, Options, finish_dots, head_poses, rigid_dot_set
 

@@ -11,7 +11,8 @@ from helpers.capture import new_session, run_lab, tiny_rig
 from mifacerf.capture.journal import read_journal
 from mifacerf.capture.session import CaptureSession, SessionError, SessionInterrupted, verify_capture
 from mifacerf.capture.simulation.lab import LabOptions
-from mifacerf.capture_folder import Capture, sha256_file
+from mifacerf.formats.capture import Capture
+from mifacerf.formats.files import sha256_file
 
 
 def files_with_sha(root):

@@ -15,7 +15,7 @@ from mifacerf.capture.calibration.radiometric import RadiometryError, calibrate_
 from mifacerf.capture.simulation.cameras import SensorModel
 from mifacerf.capture.simulation.charts import write_chart_dataset
 from mifacerf.capture.simulation.lab import LabOptions
-from mifacerf.capture_folder import Capture, Radiometry
+from mifacerf.formats.capture import Capture, Radiometry
 from mifacerf.cli import main
 
 

@@ -21,8 +21,8 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
-from mifacerf.capture_folder import Capture, CaptureWriter, ExpressionEntry
-from mifacerf.registered import RegisteredExpression, RegistrationWriter
+from mifacerf.formats.capture import Capture, CaptureWriter, ExpressionEntry
+from mifacerf.formats.registration import RegisteredExpression, RegistrationWriter
 from mifacerf.geometry.meshscene import MeshScene
 from mifacerf.rig import LightStage, Rig, camera_ring
 from mifacerf.synthetic.hand_inputs import TruthExpression, make_hand_inputs

@@ -18,8 +18,8 @@ def world_cameras(size: int = 96):
 
 def write_truth_registration(out: Path) -> Path:
     """A registration folder written from the synthetic truth (test code only)."""
-    from mifacerf.capture_folder import Capture
-    from mifacerf.registered import RegisteredExpression, RegistrationWriter
+    from mifacerf.formats.capture import Capture
+    from mifacerf.formats.registration import RegisteredExpression, RegistrationWriter
     from mifacerf.geometry.meshscene import MeshScene
 
     from mifacerf.synthetic import default_subject

@@ -55,7 +55,7 @@ def test_tiny_registration_against_truth(tiny):
 @pytest.mark.slow
 def test_tiny_outputs_feed_the_model_build(tiny):
     """The registration folder holds what ``mifacerf build`` reads (template keys, arrays, patches)."""
-    from mifacerf.registered import Registration
+    from mifacerf.formats.registration import Registration
     from mifacerf.rendering.build import template_arrays
 
     cap, truth, out, _ = tiny

@@ -5,8 +5,8 @@ import shutil
 import numpy as np
 import pytest
 
-from mifacerf.capture_folder import Capture
-from mifacerf.registered import Registration
+from mifacerf.formats.capture import Capture
+from mifacerf.formats.registration import Registration
 from mifacerf.registration import RegistrationInputError, register_capture
 from mifacerf.geometry.visibility import Visibility
 

@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 
 from mifacerf import environment as E
-from mifacerf.capture_folder import Capture
+from mifacerf.formats.capture import Capture
 from mifacerf.camera import Camera
 from mifacerf.rendering.build import build_model
-from mifacerf.rendering.model import Model, ModelError
+from mifacerf.formats.model import ModelError
+from mifacerf.rendering.model import Model
 from mifacerf.rendering.renderer import Renderer, RenderStats
 from mifacerf.synthetic.olat import render_olat
 

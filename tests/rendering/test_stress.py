@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 from mifacerf import environment as E
 from mifacerf.rendering.compression import compress_field, reconstruct
 from mifacerf.rendering.lighting import RotatedLightBasis
-from mifacerf.rendering.model import ModelError, ModelWriter
+from mifacerf.formats.model import ModelError, ModelWriter
 from mifacerf.rig import LightStage
 
 

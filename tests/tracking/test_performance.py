@@ -55,7 +55,7 @@ def test_bad_lengths_are_refused():
 
 @pytest.mark.slow
 def test_recorded_performance_folder_and_truth(world):
-    from mifacerf.tracking.folder import PerformanceFolder
+    from mifacerf.formats.performance import PerformanceFolder
     from mifacerf.synthetic.recording import read_truth
 
     perf = PerformanceFolder(world["perf"])

@@ -22,7 +22,7 @@ Layout (docs/tracking.md)::
 
 Frames are synchronised (genlocked): file ``F00042`` of every camera was exposed at
 ``42 / fps`` seconds. A camera that dropped a frame simply lacks that file; a duplicated
-frame is a file identical to the previous one (tracking detects both, see :mod:`.health`).
+frame is a file identical to the previous one (tracking detects both, see :mod:`mifacerf.tracking.health`).
 """
 from __future__ import annotations
 
@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from ..capture_folder import read_json_manifest, write_json_atomic
 from ..imageio import ImageFileError, read_exr, write_exr
+from .files import read_json_manifest, write_json_atomic
 
 FORMAT = "mifacerf.performance"
 VERSION = 1

@@ -35,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture_folder import Capture, read_json_manifest, write_json_atomic
+from .capture import Capture
+from .files import read_json_manifest, write_json_atomic
 
 FORMAT = "mifacerf.registration"
 VERSION = 1

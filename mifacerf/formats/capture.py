@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .imageio import ImageFileError, atomic_write_bytes, read_exr, write_exr
-from .rig import Rig
+from ..imageio import ImageFileError, read_exr, write_exr
+from ..rig import Rig
+from .files import read_json, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.capture"
 VERSION = 1
@@ -105,38 +106,6 @@ class Radiometry:
     def from_dict(cls, d: dict | None) -> "Radiometry":
         d = d or {}
         return cls(d.get("exposure", 1.0), d.get("colour_matrix", np.eye(3)), d.get("response"))
-
-
-def sha256_file(path: str | os.PathLike) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def read_json(path: Path, error: type[Exception], missing: str) -> dict:
-    """The JSON document at ``path``; otherwise ``error`` naming the file: ``"<path>: <missing>"`` when
-    absent, ``"<path>: not valid JSON (...)"``."""
-    if not path.exists():
-        raise error(f"{path}: {missing}")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise error(f"{path}: not valid JSON ({exc})") from exc
-
-
-def read_json_manifest(path: Path, fmt: str, version: int, error: type[Exception], missing: str, what: str) -> dict:
-    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version``; otherwise ``error``
-    naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or ``"not a version-N <what>"``."""
-    meta = read_json(path, error, missing)
-    if meta.get("format") != fmt or meta.get("version") != version:
-        raise error(f"{path}: not a version-{version} {what}")
-    return meta
-
-
-def write_json_atomic(path: str | os.PathLike, data: dict) -> None:
-    atomic_write_bytes(path, (json.dumps(data, indent=1) + "\n").encode())
 
 
 class Capture:
@@ -241,10 +210,11 @@ class Capture:
         return self.root / "cache" / expression / f"{camera}.npy"
 
     def field(self, expression: str, camera: str, lights=None, use_cache: bool = True,
-              progress=None) -> np.ndarray:
+              progress: bool = False) -> np.ndarray:
         """The reflectance field of one (expression, camera): (L', H, W, 3) float32, calibrated.
 
-        ``lights``: indices to read (default all); only those files are read. When a
+        ``lights``: indices to read (default all); only those files are read (``progress``: a bar over
+        them). When a
         packed cache exists (see :meth:`build_cache`) and is current it is memory-mapped
         instead, and only the requested lights are touched.
         """
@@ -258,8 +228,11 @@ class Capture:
             return np.asarray(packed[idx], np.float32)
         cam = self.rig.camera(camera)
         out = np.empty((len(idx), cam.height, cam.width, 3), np.float32)
-        it = idx if progress is None else progress(idx)
-        for i, l in enumerate(it):
+        if progress:
+            from ..progress import bar
+
+            idx = bar(idx, desc=f"{expression}/{camera}", unit="light")
+        for i, l in enumerate(idx):
             out[i] = self.image(expression, camera, int(l))
         return out
 
@@ -286,8 +259,9 @@ class Capture:
         data = json.dumps([self.radiometry[camera].to_dict(), self.rig.lights.irradiance.tolist()])
         return hashlib.sha1(data.encode()).hexdigest()
 
-    def build_cache(self, expression: str, camera: str, progress=None) -> Path:
-        """Pack one (expression, camera) field into ``cache/<expression>/<camera>.npy`` (float16, calibrated)."""
+    def build_cache(self, expression: str, camera: str, progress: bool = False) -> Path:
+        """Pack one (expression, camera) field into ``cache/<expression>/<camera>.npy`` (float16, calibrated;
+        ``progress``: a bar over the lights)."""
         field_ = self.field(expression, camera, use_cache=False, progress=progress)
         if np.abs(field_).max(initial=0) > 65504:
             raise CaptureError(f"{expression}/{camera}: values overflow the float16 cache")
