@@ -136,6 +136,15 @@ def propose_expression(session, name: str) -> dict:
     tr = triangulate(session.cams, clicks, max_error=1.0)
     ok = tr.ok & (tr.max_error <= 1.0)
     state = {"coarse": {}, "rotoscope": {"curves": {}, "points": {}, "eyes_look_at": None}, "overrides": {}}
+    # a coarse fiducial the followed template did not itself put on a dot sits where its neighbours put
+    # it: its nearest dot may be another one, and registration pins coarse points — left to the user
+    # (registration carries a missing coarse point from its clicked neighbours)
+    followed = np.zeros(tpl.n_vertices, bool)
+    followed[track["snapped"]] = True
+    unsure = tpl.is_dot[coarse] & ~followed[coarse]
+    if src == "template":
+        unsure[:] = False           # the neutral: the template's own positions
+    ok &= ~unsure
     for j, vid in enumerate(coarse):
         if ok[j]:
             state["coarse"][str(int(vid))] = {
@@ -202,8 +211,10 @@ def propose_expression(session, name: str) -> dict:
                 c: np.round(session.camera(c).project(p[None])[0][0], 3).tolist() for c in views}
     state["rotoscope"]["eyes_look_at"] = rot_src.get("eyes_look_at")
     n_ok = int(ok.sum())
-    return {"source": src, "state": state,
-            "note": f"from {src}: {n_ok} of {len(coarse)} coarse points found on this expression's dots; "
+    return {"source": src, "state": state, "unsure_coarse": coarse[unsure].tolist(),
+            "note": f"from {src}: {n_ok} of {len(coarse)} coarse points found on this expression's dots"
+                    + (f" ({int(unsure.sum())} left for you: {coarse[unsure].tolist()}, not found on a dot)"
+                       if unsure.any() else "") + "; "
                     f"{len(state['rotoscope']['curves'])} curves and {len(state['rotoscope']['points'])} marks "
                     "projected from the template carried by the dots"}
 

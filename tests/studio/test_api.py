@@ -245,3 +245,21 @@ def test_from_no_hand_inputs_to_a_registered_neutral(capture, studio_capture, cl
         ex = c.get("/api/session", headers=h).json()["expressions"][0]
         assert ex["registered"] and ex["dots_registered"] >= 0.4 * len(tpl["vertices"])
     assert opened == []
+
+
+def test_views_with_no_dots_give_no_proposals_and_no_crash(capture, monkeypatch):
+    """A view with no dots (here: every view's dot map blank) yields empty proposals with a note."""
+    import mifacerf.studio.proposals as P
+    from mifacerf.studio import template_proposal as TP
+    from mifacerf.studio.session import Session
+
+    s = Session(capture)
+    blank = {c.name: np.zeros((c.height, c.width), np.float32) for c in s.cams}
+    monkeypatch.setattr(P, "_strength_maps", lambda session, name: dict(blank))
+    r = P.propose_expression(s, "smile")
+    tpl = s.template()
+    # only the coarse points that are no fiducial (mouth corners, ears) remain: they have no dot to find
+    assert r["state"] is not None and r["state"]["coarse"]
+    assert not any(tpl.is_dot[int(v)] for v in r["state"]["coarse"])
+    P3, summary = TP.detect_and_match(s.cams, blank)
+    assert len(P3) == 0 and summary["points"] == 0
