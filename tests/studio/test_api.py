@@ -170,6 +170,7 @@ def test_port_in_use_next_free_or_clear_message(capture):
         s.close()
 
 
+@pytest.mark.slow
 def test_register_with_a_hand_fix_and_proposals_read_no_truth(capture, studio_capture, client_for):
     """Register the neutral through the API, fix one fiducial by hand, register again: the fix is kept
     (status hand_fixed, at the fixed position); the proposals for the smile come from the neutral.
@@ -217,6 +218,7 @@ def test_register_with_a_hand_fix_and_proposals_read_no_truth(capture, studio_ca
     assert opened == [], "the studio opened ground-truth files"
 
 
+@pytest.mark.slow
 def test_from_no_hand_inputs_to_a_registered_neutral(capture, studio_capture, client_for):
     """No hand/ at all: the template is proposed from the neutral's images (dots matched across views),
     accepted, and the neutral registers into it; nothing of the truth is read."""

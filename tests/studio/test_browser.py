@@ -17,9 +17,10 @@ import numpy as np
 import pytest
 
 CHROMIUM, DRIVER = Path("/usr/bin/chromium"), Path("/usr/bin/chromedriver")
-pytestmark = pytest.mark.skipif(not (CHROMIUM.exists() and DRIVER.exists()),
-                                reason="Debian's chromium and chromium-driver are not installed "
-                                       "(scripts/setup.sh installs them: apt-get install chromium chromium-driver)")
+pytestmark = [pytest.mark.slow,      # ~100 s: a registration and a real browser
+              pytest.mark.skipif(not (CHROMIUM.exists() and DRIVER.exists()),
+                                 reason="Debian's chromium and chromium-driver are not installed "
+                                        "(scripts/setup.sh installs them: apt-get install chromium chromium-driver)")]
 SHOTS = Path(__file__).resolve().parents[2] / ".cache-tests" / "studio-screenshots"
 
 
