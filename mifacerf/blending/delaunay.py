@@ -53,6 +53,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
+from ..geometry.ericson2004 import region_barycentrics
+
 __all__ = [
     "LocalTriangulation",
     "triangulate",
@@ -398,31 +400,7 @@ def _closest_triangle_np(p, a, b, c):
     d3, d4 = dot(ab, bp), dot(ac, bp)
     cp = p - c
     d5, d6 = dot(ab, cp), dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    sd = lambda num, den: num / np.where(den != 0, den, 1.0)
-    den = va + vb + vc
-    u = 1 - sd(vb, den) - sd(vc, den)
-    v = sd(vb, den)
-    w = sd(vc, den)
-    # edges and vertices, from lowest to highest priority (each overrides the previous)
-    rBC = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-    t = sd(d4 - d3, (d4 - d3) + (d5 - d6))
-    u, v, w = np.where(rBC, 0.0, u), np.where(rBC, 1 - t, v), np.where(rBC, t, w)
-    rAC = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    t = sd(d2, d2 - d6)
-    u, v, w = np.where(rAC, 1 - t, u), np.where(rAC, 0.0, v), np.where(rAC, t, w)
-    rC = (d6 >= 0) & (d5 <= d6)
-    u, v, w = np.where(rC, 0.0, u), np.where(rC, 0.0, v), np.where(rC, 1.0, w)
-    rAB = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    t = sd(d1, d1 - d3)
-    u, v, w = np.where(rAB, 1 - t, u), np.where(rAB, t, v), np.where(rAB, 0.0, w)
-    rB = (d3 >= 0) & (d4 <= d3)
-    u, v, w = np.where(rB, 0.0, u), np.where(rB, 1.0, v), np.where(rB, 0.0, w)
-    rA = (d1 <= 0) & (d2 <= 0)
-    u, v, w = np.where(rA, 1.0, u), np.where(rA, 0.0, v), np.where(rA, 0.0, w)
-    return u, v, w
+    return region_barycentrics(d1, d2, d3, d4, d5, d6, np.where)
 
 
 def nearest_on_hull(tri: LocalTriangulation, x):

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.ericson2004 import region_barycentrics
+
 __all__ = ["backend", "GroupTables", "evaluate_group", "horn_rotations", "JACOBI_SWEEPS"]
 
 #: Jacobi sweeps for the 4x4 eigenproblem of Horn's method
@@ -193,30 +195,7 @@ def _closest_triangle(p, a, b, c, dr):
     sub = lambda x, y: [x[i] - y[i] for i in range(3)]
     ab, ac, ap, bp, cp = sub(b, a), sub(c, a), sub(p, a), sub(p, b), sub(p, c)
     d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    sd = lambda num, den: num / dr.select(den != 0, den, 1.0)
-    den = va + vb + vc
-    v = sd(vb, den)
-    w = sd(vc, den)
-    u = 1.0 - v - w
-    rBC = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
-    t = sd(d4 - d3, (d4 - d3) + (d5 - d6))
-    u, v, w = dr.select(rBC, 0.0, u), dr.select(rBC, 1.0 - t, v), dr.select(rBC, t, w)
-    rAC = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    t = sd(d2, d2 - d6)
-    u, v, w = dr.select(rAC, 1.0 - t, u), dr.select(rAC, 0.0, v), dr.select(rAC, t, w)
-    rC = (d6 >= 0) & (d5 <= d6)
-    u, v, w = dr.select(rC, 0.0, u), dr.select(rC, 0.0, v), dr.select(rC, 1.0, w)
-    rAB = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    t = sd(d1, d1 - d3)
-    u, v, w = dr.select(rAB, 1.0 - t, u), dr.select(rAB, t, v), dr.select(rAB, 0.0, w)
-    rB = (d3 >= 0) & (d4 <= d3)
-    u, v, w = dr.select(rB, 0.0, u), dr.select(rB, 1.0, v), dr.select(rB, 0.0, w)
-    rA = (d1 <= 0) & (d2 <= 0)
-    u, v, w = dr.select(rA, 1.0, u), dr.select(rA, 0.0, v), dr.select(rA, 0.0, w)
-    return u, v, w
+    return region_barycentrics(d1, d2, d3, d4, d5, d6, dr.select)
 
 
 def _types(B, precision):
