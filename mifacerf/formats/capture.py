@@ -31,12 +31,17 @@ import numpy as np
 
 from ..imageio import ImageFileError, read_exr, write_exr
 from ..rig import Rig
-from .files import read_json, sha256_file, write_json_atomic
+from .files import read_json, require_keys, save_npy_atomic, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.capture"
 VERSION = 1
 IMAGE_PATTERN = "images/{expression}/{camera}/L{light:03d}.exr"
 CATEGORIES = ("neutral", "emotion", "viseme", "mouth", "head_pose", "eyes", "coverage", "other")
+#: keys a manifest must hold (CaptureWriter writes them all; units, colour_space and frames are
+#: documentation and may be absent)
+REQUIRED = ("rig", "expressions", "image_pattern", "checksums")
+LIGHT_KEYS = ("index", "direction", "solid_angle", "irradiance", "arm_position", "strobe")
+CAMERA_KEYS = ("name", "width", "height", "K", "dist", "R", "t", "radiometry")
 
 
 class CaptureError(ValueError):
@@ -126,9 +131,7 @@ class Capture:
             raise CaptureError(f"{mpath}: not a mifacerf capture manifest (format={m.get('format')!r})")
         if m.get("version") != VERSION:
             raise CaptureError(f"{mpath}: unsupported version {m.get('version')!r} (this is {VERSION})")
-        for key in ("rig", "expressions"):
-            if key not in m:
-                raise CaptureError(f"{mpath}: lacks '{key}'")
+        self._require_keys(mpath)
         try:
             self.rig = Rig.from_dict(m["rig"])
         except (KeyError, ValueError, TypeError) as exc:
@@ -141,14 +144,12 @@ class Capture:
         self.radiometry = {}
         for c in m["rig"]["cameras"]:
             try:
-                self.radiometry[c["name"]] = Radiometry.from_dict(c.get("radiometry"))
+                self.radiometry[c["name"]] = Radiometry.from_dict(c["radiometry"])
             except (ValueError, KeyError) as exc:
                 raise CaptureError(f"{mpath}: camera {c['name']}: bad radiometry ({exc})") from exc
         self.expressions = []
         for e in m["expressions"]:
-            if "name" not in e:
-                raise CaptureError(f"{mpath}: an expression entry has no name")
-            cat = e.get("category", "other")
+            cat = e["category"]
             if cat not in CATEGORIES:
                 raise CaptureError(f"{mpath}: expression {e['name']!r} has unknown category {cat!r}")
             self.expressions.append(ExpressionEntry(e["name"], cat))
@@ -157,8 +158,28 @@ class Capture:
             raise CaptureError(f"{mpath}: duplicate expression names")
         if not enames:
             raise CaptureError(f"{mpath}: no expressions")
-        self.pattern = m.get("image_pattern", IMAGE_PATTERN)
-        self.checksums = m.get("checksums", {})
+        self.pattern = m["image_pattern"]
+        self.checksums = m["checksums"]
+
+    def _require_keys(self, mpath: Path) -> None:
+        """Every key the writer writes and the reader uses: a missing one is an error naming it (no
+        default stands in for a deleted calibration)."""
+        m, where = self.manifest, str(mpath)
+        require_keys(m, REQUIRED, where, CaptureError)
+        require_keys(m["rig"], ("lights", "cameras"), f"{where}: rig", CaptureError)
+        require_keys(m["rig"]["lights"], ("layout", "lights"), f"{where}: rig.lights", CaptureError)
+        require_keys(m["rig"]["lights"]["layout"], ("n_positions", "n_strobes"), f"{where}: rig.lights.layout",
+                     CaptureError)
+        for i, light in enumerate(m["rig"]["lights"]["lights"]):
+            require_keys(light, LIGHT_KEYS, f"{where}: light {i}", CaptureError)
+        for i, cam in enumerate(m["rig"]["cameras"]):
+            require_keys(cam, CAMERA_KEYS, f"{where}: camera {i}", CaptureError)
+            require_keys(cam["radiometry"], ("exposure", "colour_matrix", "response"),
+                         f"{where}: camera {cam['name']!r} radiometry", CaptureError)
+        if not isinstance(m["expressions"], list):
+            raise CaptureError(f"{where}: 'expressions' must be a list")
+        for i, e in enumerate(m["expressions"]):
+            require_keys(e, ("name", "category"), f"{where}: expression entry {i}", CaptureError)
 
     # ------------------------------------------------------------------ access
     @property
@@ -223,10 +244,14 @@ class Capture:
         if idx.size and (idx.min() < 0 or idx.max() >= self.n_lights):
             raise KeyError(f"light index out of range (capture has {self.n_lights})")
         cpath = self.cache_path(expression, camera)
-        if use_cache and cpath.exists() and self._cache_current(expression, camera):
-            packed = np.load(cpath, mmap_mode="r")
-            return np.asarray(packed[idx], np.float32)
         cam = self.rig.camera(camera)
+        if use_cache and cpath.exists() and self._cache_current(expression, camera):
+            try:
+                packed = np.load(cpath, mmap_mode="r")
+                if packed.shape == (self.n_lights, cam.height, cam.width, 3):
+                    return np.asarray(packed[idx], np.float32)
+            except (OSError, ValueError, EOFError):
+                pass                  # a damaged cache: read the images (the cache may always be deleted)
         out = np.empty((len(idx), cam.height, cam.width, 3), np.float32)
         if progress:
             from ..progress import bar
@@ -266,10 +291,7 @@ class Capture:
         if np.abs(field_).max(initial=0) > 65504:
             raise CaptureError(f"{expression}/{camera}: values overflow the float16 cache")
         path = self.cache_path(expression, camera)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp.npy")
-        np.save(tmp, field_.astype(np.float16))
-        os.replace(tmp, path)
+        save_npy_atomic(path, field_.astype(np.float16))
         write_json_atomic(path.with_suffix(".json"), {"stamp": self._cache_stamp(expression, camera),
                                                       "calibration": self._calibration_key(camera)})
         return path

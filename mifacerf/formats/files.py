@@ -1,25 +1,91 @@
-"""File helpers shared by every on-disk format: atomic writes, JSON documents, checksums.
+"""File helpers shared by every on-disk format: atomic writes, JSON documents, checksums, folder locks.
 
 Atomic write: the data goes to a temporary file in the destination's folder
-(``.<name>.<random>.tmp``), is flushed and fsynced, then renamed over the
-destination, so a crash never leaves a half-written file under the final name.
+(``.<name>.<random>.tmp``, unique per call, so two processes never share one), is
+flushed and fsynced, then renamed over the destination and the folder fsynced, so a
+crash never leaves a half-written file under the final name. Files are created with
+the process's umask (``0o666 & ~umask``), as ``open()`` would create them.
+
+Integrity: a folder's manifest lists ``{"<relative path>": {"size": bytes, "sha256": hex}}``
+per file (:func:`file_entry`, :func:`check_entry`); the formats decide when each
+check runs (docs/reliability.md).
+
+Locks (:class:`FolderLock`): one writer per folder, serialised by an advisory
+``flock`` on a lock file beside the folder (``.<folder name>.lock``) holding the
+holder's PID, host and start time. The kernel drops the lock when its process dies,
+so a lock left by a killed process is recovered by the next writer without a word;
+a live holder is reported as ``locked by PID … on HOST since …`` (and waited for,
+or refused).
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import json
 import os
+import socket
 import tempfile
+import threading
+import time
+from contextlib import contextmanager
 from pathlib import Path
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename."""
+# ---------------------------------------------------------------- atomic writes
+_umask_lock = threading.Lock()
+
+
+def process_umask() -> int:
+    """The process's current umask (read from /proc where available, without changing it)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _umask_lock:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def _mkstemp_for(path: Path, suffix: str = ".tmp") -> tuple[int, str]:
+    """A unique temporary file next to ``path``, created with the process's umask (not 0600)."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    try:
+        os.fchmod(fd, 0o666 & ~process_umask())
+    except BaseException:
+        os.close(fd)
+        os.unlink(tmp)
+        raise
+    return fd, tmp
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """fsync a folder so that renames inside it are durable (no-op where folders cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def atomic_open(path: str | os.PathLike):
+    """``with atomic_open(path) as f: f.write(...)``: a binary file that appears at ``path`` complete
+    (fsync, rename, folder fsync) when the block ends, and not at all when it raises."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = _mkstemp_for(path)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -27,15 +93,80 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    fsync_dir(path.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same folder, fsync and rename."""
+    with atomic_open(path) as f:
+        f.write(data)
 
 
 def atomic_target(path: Path) -> Path:
     """A temporary path next to ``path`` for writers that need a file name (rename it over ``path``)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    fd, tmp = _mkstemp_for(path, ".tmp" + path.suffix)
     os.close(fd)
     return Path(tmp)
 
 
+def save_npz_atomic(path: str | os.PathLike, compressed: bool = True, **arrays) -> None:
+    """``np.savez[_compressed]`` to ``path`` atomically (the folder is created if needed)."""
+    import numpy as np
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path) as f:
+        (np.savez_compressed if compressed else np.savez)(f, **arrays)
+
+
+def save_npy_atomic(path: str | os.PathLike, array) -> None:
+    """``np.save`` to ``path`` atomically (the folder is created if needed)."""
+    import numpy as np
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_open(path) as f:
+        np.save(f, array)
+
+
+# ---------------------------------------------------------------- JSON
+def read_json(path: Path, error: type[Exception], missing: str) -> dict:
+    """The JSON document at ``path``; otherwise ``error`` naming the file: ``"<path>: <missing>"`` when
+    absent, ``"<path>: not valid JSON (...)"``."""
+    if not path.exists():
+        raise error(f"{path}: {missing}")
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: not valid JSON ({exc})") from exc
+
+
+def read_json_manifest(path: Path, fmt: str, version: int | tuple, error: type[Exception], missing: str,
+                       what: str) -> dict:
+    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version`` (or one of several);
+    otherwise ``error`` naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or
+    ``"not a version-N <what>"``."""
+    meta = read_json(path, error, missing)
+    versions = version if isinstance(version, tuple) else (version,)
+    if not isinstance(meta, dict) or meta.get("format") != fmt or meta.get("version") not in versions:
+        raise error(f"{path}: not a version-{versions[-1]} {what}")
+    return meta
+
+
+def require_keys(mapping, keys, where: str, error: type[Exception]) -> None:
+    """``error("<where>: lacks 'key'")`` for the first of ``keys`` missing from ``mapping``."""
+    if not isinstance(mapping, dict):
+        raise error(f"{where}: expected a JSON object, got {type(mapping).__name__}")
+    for k in keys:
+        if k not in mapping:
+            raise error(f"{where}: lacks '{k}'")
+
+
+def write_json_atomic(path: str | os.PathLike, data: dict) -> None:
+    atomic_write_bytes(path, (json.dumps(data, indent=1) + "\n").encode())
+
+
+# ---------------------------------------------------------------- checksums
 def sha256_file(path: str | os.PathLike) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -44,25 +175,233 @@ def sha256_file(path: str | os.PathLike) -> str:
     return h.hexdigest()
 
 
-def read_json(path: Path, error: type[Exception], missing: str) -> dict:
-    """The JSON document at ``path``; otherwise ``error`` naming the file: ``"<path>: <missing>"`` when
-    absent, ``"<path>: not valid JSON (...)"``."""
-    if not path.exists():
-        raise error(f"{path}: {missing}")
+def file_entry(path: str | os.PathLike) -> dict:
+    """``{"size": bytes, "sha256": hex}`` of a file (its manifest entry)."""
+    return {"size": os.path.getsize(path), "sha256": sha256_file(path)}
+
+
+def check_entry(path: Path, entry: dict, error: type[Exception], checksum: bool = True) -> None:
+    """``error`` naming ``path`` when it is missing, has another size than ``entry`` or (``checksum``)
+    another sha256."""
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise error(f"{path}: not valid JSON ({exc})") from exc
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise error(f"{path}: missing (listed in the folder's manifest)") from None
+    if size != entry["size"]:
+        raise error(f"{path}: {size} bytes, the manifest says {entry['size']} (the file changed or is "
+                    "truncated)")
+    if checksum and sha256_file(path) != entry["sha256"]:
+        raise error(f"{path}: checksum mismatch (the file changed or is corrupt)")
 
 
-def read_json_manifest(path: Path, fmt: str, version: int, error: type[Exception], missing: str, what: str) -> dict:
-    """The JSON manifest at ``path``, checked to be ``format`` ``fmt`` at ``version``; otherwise ``error``
-    naming the file: ``"<path>: <missing>"`` when absent, invalid JSON, or ``"not a version-N <what>"``."""
-    meta = read_json(path, error, missing)
-    if meta.get("format") != fmt or meta.get("version") != version:
-        raise error(f"{path}: not a version-{version} {what}")
-    return meta
+# ---------------------------------------------------------------- locks
+_held: dict[str, list] = {}           # lock path -> [fd, count]: re-entrant within one process
+_held_lock = threading.Lock()
 
 
-def write_json_atomic(path: str | os.PathLike, data: dict) -> None:
-    atomic_write_bytes(path, (json.dumps(data, indent=1) + "\n").encode())
+def lock_path(folder: str | os.PathLike) -> Path:
+    """The lock file of ``folder``: ``.<name>.lock`` beside it (it survives the folder being replaced)."""
+    folder = Path(os.path.abspath(folder))
+    return folder.parent / f".{folder.name}.lock"
+
+
+def _holder(fd: int) -> str:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        d = json.loads(os.read(fd, 4096).decode() or "{}")
+        return f"PID {d.get('pid', '?')} on {d.get('host', '?')} since {d.get('since', '?')}"
+    except (OSError, ValueError):
+        return "another process"
+
+
+class FolderLock:
+    """Exclusive writer's lock on ``folder`` (a context manager; re-entrant within a process).
+
+    ``wait``: True waits for a live holder (``log`` hears once who holds it), a number waits that many
+    seconds at most, False refuses at once; a refusal raises ``error`` ("<folder>: locked by PID … on
+    HOST since …"). A holder that died left nothing to clean up: the kernel released its lock.
+    """
+
+    def __init__(self, folder: str | os.PathLike, error: type[Exception] = OSError, wait: bool | float = True,
+                 log=None, what: str = "write"):
+        self.folder = Path(folder)
+        self.path = lock_path(folder)
+        self.error, self.wait, self.log, self.what = error, wait, log, what
+        self._fd = None
+
+    def acquire(self) -> "FolderLock":
+        key = str(self.path)
+        with _held_lock:
+            if key in _held:
+                _held[key][1] += 1
+                self._fd = _held[key][0]
+                return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            self._lock(fd)
+            os.ftruncate(fd, 0)
+            os.lseek(fd, 0, os.SEEK_SET)
+            os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                     "since": time.strftime("%Y-%m-%d %H:%M:%S"), "what": self.what}).encode())
+        except BaseException:
+            os.close(fd)
+            raise
+        with _held_lock:
+            _held[key] = [fd, 1]
+        self._fd = fd
+        return self
+
+    def _lock(self, fd: int) -> None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise
+        who = _holder(fd)
+        if self.wait is False:
+            raise self.error(f"{self.folder}: locked by {who} (another {self.what} is running; wait for it "
+                             "to finish)")
+        if self.log is not None:
+            self.log(f"{self.folder}: locked by {who}; waiting for it to finish")
+        deadline = None if self.wait is True else time.monotonic() + float(self.wait)
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                    raise
+            if deadline is not None and time.monotonic() > deadline:
+                raise self.error(f"{self.folder}: locked by {_holder(fd)} (still, after {self.wait} s)")
+            time.sleep(0.05)
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        key = str(self.path)
+        with _held_lock:
+            entry = _held.get(key)
+            if entry is not None:
+                entry[1] -= 1
+                if entry[1] > 0:
+                    self._fd = None
+                    return
+                del _held[key]
+        fd, self._fd = self._fd, None
+        try:
+            os.ftruncate(fd, 0)
+        except OSError:
+            pass
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        os.close(fd)
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+# ---------------------------------------------------------------- whole-folder transactions
+#: sibling folders of a folder transaction: ``.<name>.building-*`` (being written), ``.<name>.ready-*``
+#: (complete, about to be swapped in), ``.<name>.old-*`` (the replaced folder, being deleted)
+_STAGES = ("building", "ready", "old")
+
+
+def new_building_dir(target: str | os.PathLike) -> Path:
+    """A fresh ``.<name>.building-*`` folder beside ``target`` (created with the process's umask)."""
+    target = Path(os.path.abspath(target))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    path = Path(tempfile.mkdtemp(prefix=f".{target.name}.building-{os.getpid()}-", dir=target.parent))
+    os.chmod(path, 0o777 & ~process_umask())
+    return path
+
+
+def _siblings(target: Path, stage: str) -> list[Path]:
+    prefix = f".{target.name}.{stage}-"
+    try:
+        names = os.listdir(target.parent)
+    except OSError:
+        return []
+    return sorted((target.parent / n for n in names if n.startswith(prefix)), key=lambda p: p.name)
+
+
+def _remove_tree(path: Path, marker: str) -> None:
+    import shutil
+
+    try:
+        (path / marker).unlink()        # first: a half-deleted folder never looks complete
+    except FileNotFoundError:
+        pass
+    shutil.rmtree(path, ignore_errors=True)
+
+
+def swap_in(target: str | os.PathLike, building: Path, marker: str) -> None:
+    """Replace ``target`` by the complete folder ``building`` (the caller holds ``target``'s lock).
+
+    Renames ``building`` to ``.<name>.ready-*`` (the commit point), ``target`` (if any) aside to
+    ``.<name>.old-*``, the ready folder to ``target``, then deletes the old one (its ``marker`` file
+    first). Killed at any moment, :func:`repair_swap` finishes the swap: ``target`` is either the old
+    complete folder or the new one.
+    """
+    target = Path(os.path.abspath(target))
+    ready = target.parent / building.name.replace(".building-", ".ready-", 1)
+    os.rename(building, ready)
+    fsync_dir(target.parent)
+    _finish_swap(target, ready, marker)
+
+
+def _finish_swap(target: Path, ready: Path, marker: str) -> None:
+    old = None
+    if target.exists():
+        old = target.parent / ready.name.replace(".ready-", ".old-", 1)
+        os.rename(target, old)
+    os.rename(ready, target)
+    fsync_dir(target.parent)
+    if old is not None:
+        _remove_tree(old, marker)
+
+
+def pending_swap(target: str | os.PathLike) -> bool:
+    """Whether folders of an unfinished transaction lie beside ``target``."""
+    target = Path(os.path.abspath(target))
+    return any(_siblings(target, s) for s in _STAGES)
+
+
+def repair_swap(target: str | os.PathLike, marker: str) -> None:
+    """Finish or undo an interrupted :func:`swap_in` (the caller holds ``target``'s lock, so no writer is
+    running): a ready folder is swapped in; without one, a missing ``target`` gets its old folder back
+    (when complete: ``marker`` present); every other leftover (unfinished builds) is deleted."""
+    target = Path(os.path.abspath(target))
+    ready = _siblings(target, "ready")
+    if ready:
+        _finish_swap(target, ready[-1], marker)
+    elif not target.exists():
+        olds = [p for p in _siblings(target, "old") if (p / marker).exists()]
+        if olds:
+            os.rename(olds[-1], target)
+            fsync_dir(target.parent)
+    for stage in _STAGES:
+        for p in _siblings(target, stage):
+            _remove_tree(p, marker)
+
+
+def repair_if_needed(target: str | os.PathLike, marker: str, error: type[Exception], settle_s: float = 10.0) -> None:
+    """Readers' half of the folder transaction: when an interrupted swap lies beside ``target``, repair
+    it if no writer holds the lock; when one does, wait (up to ``settle_s``) for ``target`` to exist."""
+    target = Path(os.path.abspath(target))
+    if not pending_swap(target):
+        return
+    try:
+        with FolderLock(target, error, wait=False):
+            repair_swap(target, marker)
+        return
+    except error:
+        pass                       # a writer is at work: it finishes its own swap
+    except OSError:
+        return                     # cannot lock here (read-only medium): read what is there
+    deadline = time.monotonic() + settle_s
+    while not (target / marker).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)

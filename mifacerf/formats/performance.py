@@ -20,6 +20,16 @@ Layout (docs/tracking.md)::
      "starts_at_rest": true,                      # frame 0 shows the neutral face, head at the neutral pose
      "subject": {...}, "dot_radius": 0.0015}
 
+Version 2 adds ``"checksums": {"frames/<camera>/F<frame>.exr": sha256}`` of every frame
+(written with the manifest, last). :meth:`PerformanceFolder.read` does not check them:
+tracking treats a frame it cannot decode as dropped and reports it, as it must for a
+camera's own faults; :meth:`PerformanceFolder.verify` (``mifacerf verify PERF``) tells
+later damage (a checksum mismatch, naming the file) from what the cameras recorded. Every key
+above but ``lighting``, ``starts_at_rest``, ``subject`` and ``dot_radius`` is required.
+Recording is resumable: frames already on disk are kept, but only when the recording's
+settings (cameras, fps, frame count, extras) are those the folder was started with
+(``.recording.json``); other settings are refused rather than mixed with those frames.
+
 Frames are synchronised (genlocked): file ``F00042`` of every camera was exposed at
 ``42 / fps`` seconds. A camera that dropped a frame simply lacks that file; a duplicated
 frame is a file identical to the previous one (tracking detects both, see :mod:`mifacerf.tracking.health`).
@@ -34,10 +44,13 @@ import numpy as np
 
 from ..camera import Camera
 from ..imageio import ImageFileError, read_exr, write_exr
-from .files import read_json_manifest, write_json_atomic
+from .files import read_json, read_json_manifest, require_keys, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.performance"
-VERSION = 1
+VERSION = 2
+READS = (1, 2)            #: versions this reader opens (1: before the checksums)
+#: keys the manifest must hold (version 1 lacks "checksums")
+REQUIRED = ("cameras", "fps", "n_frames", "frame_pattern", "template", "checksums")
 FRAME_PATTERN = "frames/{camera}/F{frame:05d}.exr"
 KEYFRAMES_FORMAT = "mifacerf.performance_keyframes"
 
@@ -52,9 +65,13 @@ class PerformanceFolder:
     def __init__(self, root: str | os.PathLike):
         self.root = Path(root)
         path = self.root / "manifest.json"
-        self.meta = read_json_manifest(path, FORMAT, VERSION, PerformanceError,
+        self.meta = read_json_manifest(path, FORMAT, READS, PerformanceError,
                                        "missing (not a performance folder, or its recording did not finish)",
                                        f"{FORMAT} manifest")
+        require_keys(self.meta, REQUIRED if self.meta["version"] >= 2 else REQUIRED[:-1], str(path),
+                     PerformanceError)
+        #: {relative path: sha256} of every frame (None: version 1, unchecked)
+        self.checksums: dict | None = self.meta.get("checksums")
         try:
             self.cameras = [Camera.from_dict(c) for c in self.meta["cameras"]]
             self.fps = float(self.meta["fps"])
@@ -63,7 +80,7 @@ class PerformanceFolder:
             raise PerformanceError(f"{path}: needs cameras, fps and n_frames ({exc})") from exc
         if len(self.cameras) < 2:
             raise PerformanceError(f"{path}: tracking needs at least two cameras")
-        self.pattern = self.meta.get("frame_pattern", FRAME_PATTERN)
+        self.pattern = self.meta["frame_pattern"]
 
     @property
     def camera_names(self) -> list[str]:
@@ -75,10 +92,34 @@ class PerformanceFolder:
     def read(self, camera: str, frame: int) -> np.ndarray | None:
         """The (H, W, 3) image of ``camera`` at ``frame``, or None when the file is missing or unreadable."""
         cam = self.cameras[self.camera_names.index(camera)]
+        path = self.frame_path(camera, frame)
         try:
-            return read_exr(self.frame_path(camera, frame), channels=3, expect_shape=(cam.height, cam.width))
+            return read_exr(path, channels=3, expect_shape=(cam.height, cam.width))
         except ImageFileError:
             return None
+
+    def _check(self, path: Path) -> None:
+        rel = path.relative_to(self.root).as_posix()
+        want = self.checksums.get(rel)
+        if want is None:
+            raise PerformanceError(f"{path}: not in the manifest's checksums (a frame added after the recording)")
+        if sha256_file(path) != want:
+            raise PerformanceError(f"{path}: checksum mismatch (the file changed or is corrupt)")
+
+    def verify(self) -> list[str]:
+        """Every problem found by checking each recorded frame's checksum (empty: all verify)."""
+        if self.checksums is None:
+            return [f"{self.root / 'manifest.json'}: a version-1 performance without checksums"]
+        problems = []
+        for rel in sorted(self.checksums):
+            p = self.root / rel
+            try:
+                if not p.exists():
+                    raise PerformanceError(f"{p}: missing (listed in the manifest)")
+                self._check(p)
+            except PerformanceError as exc:
+                problems.append(str(exc))
+        return problems
 
     @property
     def template_path(self) -> Path:
@@ -106,13 +147,33 @@ class PerformanceWriter:
                  template: dict, extra: dict | None = None):
         self.root = Path(root)
         self.cameras = cameras
+        self.meta = {"format": FORMAT, "version": VERSION, "fps": float(fps), "n_frames": int(n_frames),
+                     "cameras": [c.to_dict() for c in cameras], "frame_pattern": FRAME_PATTERN,
+                     "template": "hand/template.json", **(extra or {})}
+        # resume only what was started with the same settings (the frames on disk belong to them)
+        settings = json.loads(json.dumps({**self.meta, "template_content": template}))
+        stamp = self.root / ".recording.json"
+        if stamp.exists():
+            before = read_json(stamp, PerformanceError, "missing")
+        elif (self.root / "manifest.json").exists():     # a complete recording of an earlier version
+            before = {k: v for k, v in read_json(self.root / "manifest.json", PerformanceError, "missing").items()
+                      if k != "checksums"}
+            before.update(version=VERSION, template_content=read_json(self.root / "hand" / "template.json",
+                                                                      PerformanceError, "missing"))
+        elif any((self.root / "frames").rglob("*.exr")):
+            raise PerformanceError(f"{self.root}: holds frames of an unknown recording; record into a new folder, "
+                                   "or delete this one to start again")
+        else:
+            before = settings
+        if before != settings:
+            diff = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+            raise PerformanceError(f"{self.root}: holds frames recorded with other settings ({', '.join(diff)} "
+                                   "differ); record into a new folder, or delete this one to start again")
         for c in cameras:
             (self.root / "frames" / c.name).mkdir(parents=True, exist_ok=True)
         (self.root / "hand" / "rotoscope").mkdir(parents=True, exist_ok=True)
         write_json_atomic(self.root / "hand" / "template.json", template)
-        self.meta = {"format": FORMAT, "version": VERSION, "fps": float(fps), "n_frames": int(n_frames),
-                     "cameras": [c.to_dict() for c in cameras], "frame_pattern": FRAME_PATTERN,
-                     "template": "hand/template.json", **(extra or {})}
+        write_json_atomic(stamp, settings)
 
     def frame_path(self, camera: str, frame: int) -> Path:
         return self.root / FRAME_PATTERN.format(camera=camera, frame=frame)
@@ -132,5 +193,8 @@ class PerformanceWriter:
                            **{k: sorted(int(f) for f in v) for k, v in index.items()}})
 
     def finish(self) -> Path:
+        """Checksum every frame on disk and write the manifest (the completion marker), last."""
+        frames = sorted(p for c in self.cameras for p in (self.root / "frames" / c.name).glob("F*.exr"))
+        self.meta["checksums"] = {p.relative_to(self.root).as_posix(): sha256_file(p) for p in frames}
         write_json_atomic(self.root / "manifest.json", self.meta)
         return self.root
