@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +31,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..formats.capture import Capture
+from ..formats.files import save_npz_atomic
 from ..rig import LightStage
 
 DEFAULT_CONE_DEG = 60.0
@@ -89,18 +90,15 @@ def load_cached(capture: Capture, expression: str, camera: str,
         if str(z["stamp"]) != _stamp(capture, expression, camera, cone_deg):
             return None
         return Proxies(z["diffuse"].astype(np.float32), z["p95"].astype(np.float32))
-    except (OSError, KeyError, ValueError, EOFError):
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):   # a damaged cache is recomputed
         return None
 
 
 def save_cached(capture: Capture, expression: str, camera: str, proxies: Proxies,
                 cone_deg: float = DEFAULT_CONE_DEG) -> Path:
     path = proxy_path(capture, expression, camera)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.npz")
-    np.savez(tmp, diffuse=proxies.diffuse, p95=proxies.p95,
-             stamp=np.array(_stamp(capture, expression, camera, cone_deg)))
-    os.replace(tmp, path)
+    save_npz_atomic(path, compressed=False, diffuse=proxies.diffuse, p95=proxies.p95,    # unique temporary name:
+                    stamp=np.array(_stamp(capture, expression, camera, cone_deg)))     # concurrent runs may both save
     return path
 
 

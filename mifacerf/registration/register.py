@@ -126,7 +126,7 @@ class Registrar:
     """Holds the capture, the hand inputs and the expressions registered so far."""
 
     def __init__(self, capture: Capture, out: Path, options: Options | None = None, log=None,
-                 hand: HandInputs | None = None):
+                 hand: HandInputs | None = None, fresh: bool = False):
         self.cap = capture
         self.opt = options or Options()
         self.log = log or (lambda msg: None)
@@ -142,7 +142,7 @@ class Registrar:
         self.camd = {c.name: c for c in self.cams}
         self.fp = centre_footprint(self.cams)
         self.vis = Visibility(self.tpl.triangles, self.tpl.n_vertices, tol=max(0.5 * self.fp, 5e-4))
-        self.writer = RegistrationWriter(out, capture, self.tpl.to_dict())
+        self.writer = RegistrationWriter(out, capture, self.tpl.to_dict(), fresh=fresh)
         self.registered: dict[str, RegisteredExpression] = {}
         self.dots = self.tpl.dot_ids
         self.is_dot = self.tpl.is_dot
@@ -750,7 +750,7 @@ class Registrar:
             ec = self.eye_centres(reg.head_pose)
             if not np.allclose(np.nan_to_num(ec, nan=1e9), np.nan_to_num(reg.eye_centres, nan=1e9)):
                 reg.eye_centres = ec
-                self.writer.write_expression(reg, self.writer.meta["expressions"][name])
+                self.writer.write_expression(reg, self.writer.meta["expressions"][name], keep_dotfree=True)
         return info
 
 
@@ -792,33 +792,36 @@ def register_capture(capture, out=None, expressions=None, force: bool = False, o
 
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     out = Path(out) if out is not None else cap.root / "registration"
-    reg = Registrar(cap, out, options, log)
     names = list(expressions) if expressions else cap.expression_names
     unknown = [n for n in names if n not in cap.expression_names]
     if unknown:
         raise RegistrationInputError(f"unknown expression(s): {', '.join(unknown)}")
-    if force:
-        reg.writer.meta["expressions"] = {}
-        reg.writer.meta.pop("dot_filter", None)
-        reg.filter = None
-    reg.writer.set_meta("options", asdict(reg.opt))
-    reg.writer.set_meta("hand_input_problems", reg.hand.problems)
-    for n in cap.expression_names:
-        if reg.writer.done(n):
-            reg.registered[n] = RegisteredExpression.load(out / "expressions" / f"{n}.npz", n)
-    todo = [n for n in names if n not in reg.registered]
-    if reg.neutral not in reg.registered and reg.neutral not in todo:
-        todo.insert(0, reg.neutral)  # everything is registered relative to the neutral
-    bar = tqdm(total=len(todo), desc="register", unit="expr", disable=not progress)
-    if reg.neutral in todo:
-        bar.set_postfix_str(reg.neutral)
-        reg.register(reg.neutral)
-        todo.remove(reg.neutral)
-        bar.update(1)
-    for n in order_expressions(reg, todo):
-        bar.set_postfix_str(n)
-        reg.register(n)
-        bar.update(1)
-    bar.close()
-    reg.finish_eyes()
-    return out
+    # --force without --expressions starts over in a new folder, swapped in when complete; with
+    # --expressions only those are redone, each replacing its old registration when it is complete
+    redo = set(names) if force else set()
+    reg = Registrar(cap, out, options, log, fresh=force and not expressions)
+    try:
+        reg.writer.set_meta("options", asdict(reg.opt))
+        reg.writer.set_meta("hand_input_problems", reg.hand.problems)
+        for n in cap.expression_names:
+            if reg.writer.done(n) and n not in redo:
+                reg.registered[n] = reg.writer.load(n)
+        todo = [n for n in names if n not in reg.registered]
+        if reg.neutral not in reg.registered and reg.neutral not in todo:
+            todo.insert(0, reg.neutral)  # everything is registered relative to the neutral
+        bar = tqdm(total=len(todo), desc="register", unit="expr", disable=not progress)
+        if reg.neutral in todo:
+            bar.set_postfix_str(reg.neutral)
+            reg.register(reg.neutral)
+            todo.remove(reg.neutral)
+            bar.update(1)
+        for n in order_expressions(reg, todo):
+            bar.set_postfix_str(n)
+            reg.register(n)
+            bar.update(1)
+        bar.close()
+        reg.finish_eyes()
+    except BaseException:
+        reg.writer.abort()       # what was committed stays; nothing half-written does
+        raise
+    return reg.writer.finish()
