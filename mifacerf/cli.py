@@ -45,6 +45,8 @@ LAZY_COMMANDS = {
                 "Run a light-stage capture session into the folder OUT (paper §2.1)."),
     "calibrate": ("mifacerf.capture.cli:calibrate_group",
                   "Geometric (Zhang) and radiometric (response, colour) calibration of the cameras (paper §2.1)."),
+    "verify": ("mifacerf.formats.cli:verify_cmd",
+               "Check every file of a capture, registration, model or performance folder against its manifest."),
 }
 
 

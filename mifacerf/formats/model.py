@@ -3,12 +3,16 @@
 Layout::
 
     MODEL/
-      model.json                 format, version, lights, cameras, expressions, template, references
+      model.json                 format, version, lights, cameras, expressions, template, references,
+                                 fields, and ``files``: size and sha256 of every other file (written last)
       geometry.npz               vertices (S, T, 3), visible (S, C, T), status (S, T), triangles (F, 3),
                                  eye_centres (S, 2, 3), teeth (S, 2, 4, 4), head_pose (S, 4, 4)
       blend.npz                  the §5 blend model (mifacerf.blending.BlendModel)
       fields/<expr>/<cam>.texels.npz   texel map: pixels (N, 2) (row, col), tri (N,), bary (N, 3), depth (N,)
       fields/<expr>/<cam>.rf.npy       reflectance functions (N, L, 3) float16, texel-major
+      fields/<ref>/<cam>.parts.npz     eye / teeth / mouth texels of a part source (pixels, part, depth)
+      fields/<ref>/<cam>.parts.rf.npy  their reflectance functions (N, L, 3) float16
+      fields/<expr>/<cam>.<method><rank>.npz   compressed fields (mifacerf compress), listed in "compressed"
 
 A field stores only the N pixels of camera ``cam`` where the template mesh of
 expression ``expr`` is seen (ray cast through the pixel centres): per pixel its
@@ -20,6 +24,23 @@ and values up to 65504).
 
 Opening a model reads ``model.json`` and ``geometry.npz`` only; a field's files are
 read (memory-mapped) the first time a render needs that (expression, camera).
+
+Integrity (version 2): ``model.json["files"]`` lists ``{"size", "sha256"}`` of every
+file of the folder. Opening checks that every listed file exists with its size
+(one ``stat`` each) and the checksum of ``geometry.npz``; a field's, a part field's,
+a compressed field's and the blend model's files are checksummed the first time they
+are read (a field's ``.rf.npy`` when it is first memory-mapped: once per file and
+process); :meth:`ModelFolder.verify` (``mifacerf verify MODEL``) checks everything at
+once. Every mismatch raises :class:`ModelError` naming the file. Version-1 models
+(no ``files``) are still read, unchecked.
+
+Transactions: :class:`ModelWriter` writes into a sibling folder ``.<name>.building-*``
+and swaps it in when complete (:func:`.files.swap_in`), holding the folder's lock
+(:class:`.files.FolderLock`) all along; a failed or killed build leaves the previous
+model as it was, and a build interrupted during the swap is finished by the next
+open or build (:func:`.files.repair_swap`). ``--overwrite`` replaces the whole model
+(compressed fields included: they belong to the old fields) only once the new one is
+complete.
 
 This module is the format: :class:`ModelFolder` reads it, :class:`ModelWriter` writes
 it. :class:`mifacerf.rendering.model.Model` is the reader with the rendering-side
@@ -35,10 +56,17 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from .files import read_json_manifest, write_json_atomic
+from .files import (FolderLock, check_entry, file_entry, new_building_dir, read_json_manifest,
+                    repair_if_needed, repair_swap, require_keys, save_npy_atomic, save_npz_atomic, swap_in,
+                    write_json_atomic)
 
 FORMAT = "mifacerf.model"
-VERSION = 1
+VERSION = 2
+READS = (1, 2)       #: versions this reader opens (1: before the checksums)
+MARKER = "model.json"
+#: keys model.json must hold (version 1 lacks the last three)
+REQUIRED = ("lights", "cameras", "expressions", "neutral", "template", "fields", "files", "references",
+            "part_sources")
 
 
 class ModelError(ValueError):
@@ -88,17 +116,34 @@ class ModelFolder:
 
     def __init__(self, root: str | os.PathLike, cache_bytes: int = 4 << 30):
         self.root = Path(root)
-        self.meta = read_json_manifest(self.root / "model.json", FORMAT, VERSION, ModelError,
+        repair_if_needed(self.root, MARKER, ModelError)
+        mpath = self.root / MARKER
+        self.meta = read_json_manifest(mpath, FORMAT, READS, ModelError,
                                        "missing; build a model with 'mifacerf build CAPTURE -o MODEL'",
                                        "mifacerf model")
-        self.cameras = [Camera.from_dict(c) for c in self.meta["cameras"]]
-        self.light_directions = np.asarray(self.meta["lights"]["directions"], np.float64)
-        self.solid_angles = np.asarray(self.meta["lights"]["solid_angles"], np.float64)
-        self.expressions = [e["name"] for e in self.meta["expressions"]]
-        self.categories = {e["name"]: e.get("category", "other") for e in self.meta["expressions"]}
+        m = self.meta
+        require_keys(m, REQUIRED if m["version"] >= 2 else REQUIRED[:-3], str(mpath), ModelError)
+        require_keys(m["lights"], ("directions", "solid_angles"), f"{mpath}: lights", ModelError)
+        for e in m["expressions"]:
+            require_keys(e, ("name", "category"), f"{mpath}: an expression entry", ModelError)
+        #: {relative path: {"size", "sha256"}} (None: a version-1 model, unchecked)
+        self.files: dict | None = m.get("files")
+        self._verified: set[str] = set()
+        if self.files is not None:
+            for rel, entry in self.files.items():
+                check_entry(self.root / rel, entry, ModelError, checksum=False)
+        try:
+            self.cameras = [Camera.from_dict(c) for c in m["cameras"]]
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ModelError(f"{mpath}: invalid camera entry ({exc})") from exc
+        self.light_directions = np.asarray(m["lights"]["directions"], np.float64)
+        self.solid_angles = np.asarray(m["lights"]["solid_angles"], np.float64)
+        self.expressions = [e["name"] for e in m["expressions"]]
+        self.categories = {e["name"]: e["category"] for e in m["expressions"]}
         gpath = self.root / "geometry.npz"
         if not gpath.exists():
             raise ModelError(f"{gpath}: missing")
+        self.check_file(gpath)
         g = np.load(gpath)
         try:
             self.vertices = g["vertices"]
@@ -114,11 +159,43 @@ class ModelFolder:
         if s != len(self.expressions) or self.visible.shape != (s, len(self.cameras), t):
             raise ModelError(f"{gpath}: shapes do not match model.json ({s} expressions, {len(self.cameras)} "
                              f"cameras, {t} vertices)")
-        self.template = self.meta.get("template", {})
-        self.neutral = self.meta.get("neutral", self.expressions[0])
+        self.template = m["template"]
+        self.neutral = m["neutral"]
+        if self.neutral not in self.expressions:
+            raise ModelError(f"{mpath}: neutral {self.neutral!r} is not one of its expressions")
         self.cache_bytes = cache_bytes
         self._fields: OrderedDict = OrderedDict()
         self.loaded_fields: list[tuple[str, str]] = []  # every (expression, camera) read from disk, in order
+
+    # ---------------------------------------------------------------- integrity
+    def check_file(self, path: Path, required: bool = True) -> None:
+        """Checksum ``path`` against the manifest, once per process and file (no-op for version 1);
+        ``required``: a file the manifest does not list is an error (else it is ignored)."""
+        if self.files is None:
+            return
+        rel = Path(path).relative_to(self.root).as_posix()
+        if rel in self._verified:
+            return
+        entry = self.files.get(rel)
+        if entry is None:
+            if required:
+                raise ModelError(f"{path}: not in the model's manifest (model.json 'files'); the folder was "
+                                 "changed after it was built")
+            return
+        check_entry(Path(path), entry, ModelError)
+        self._verified.add(rel)
+
+    def verify(self) -> list[str]:
+        """Every problem found by checking each listed file's size and checksum (empty: all verify)."""
+        if self.files is None:
+            return [f"{self.root / MARKER}: a version-1 model without checksums; rebuild it to get them"]
+        problems = []
+        for rel, entry in sorted(self.files.items()):
+            try:
+                check_entry(self.root / rel, entry, ModelError)
+            except ModelError as exc:
+                problems.append(str(exc))
+        return problems
 
     # ---------------------------------------------------------------- access
     @property
@@ -157,6 +234,7 @@ class ModelFolder:
         for p in (tpath, rpath):
             if not p.exists():
                 raise ModelError(f"{p}: missing field file for expression {e!r}, camera {cam.name!r}")
+            self.check_file(p)
         try:
             z = np.load(tpath)
             rf = np.load(rpath, mmap_mode="r")
@@ -186,6 +264,8 @@ class ModelFolder:
             return None
         if not rpath.exists():
             raise ModelError(f"{rpath}: missing (its texel map {tpath.name} exists)")
+        self.check_file(tpath)
+        self.check_file(rpath)
         z = np.load(tpath)
         out = {"pixels": z["pixels"].astype(np.int64), "part": z["part"].astype(np.int64), "depth": z["depth"],
                "rf": np.load(rpath, mmap_mode="r")}
@@ -196,7 +276,7 @@ class ModelFolder:
     @property
     def references(self) -> dict:
         """{"eyes" / "teeth" / "mouth": expression}: the parts' reference expressions."""
-        return dict(self.meta.get("references", {}))
+        return dict(self.meta.get("references", {}))      # (version 1 without parts: none)
 
     @property
     def part_sources(self) -> dict:
@@ -209,17 +289,33 @@ class ModelFolder:
 
 
 class ModelWriter:
-    """Writes a model folder; ``model.json`` last."""
+    """Writes a model folder as one transaction: into ``.<name>.building-*`` beside it, ``model.json``
+    (with every other file's size and sha256) last, then swapped in by :meth:`finish`; :meth:`abort`
+    (or a failure inside ``with ModelWriter(...) as w:``) leaves the previous model untouched. The
+    folder's lock is held from construction to finish / abort (``wait``: see :class:`.files.FolderLock`).
+
+    ``root`` is the folder being written (the building folder); ``target`` the model folder.
+    """
 
     def __init__(self, root: str | os.PathLike, light_directions, solid_angles, cameras: list[Camera],
                  expressions: list[tuple[str, str]], triangles, template: dict | None = None,
-                 neutral: str | None = None, overwrite: bool = False):
-        self.root = Path(root)
-        if (self.root / "model.json").exists() and not overwrite:
-            raise ModelError(f"{self.root}: already holds a model; choose another folder or overwrite")
-        self.root.mkdir(parents=True, exist_ok=True)
-        if (self.root / "model.json").exists():
-            (self.root / "model.json").unlink()
+                 neutral: str | None = None, overwrite: bool = False, wait: bool | float = True, log=None):
+        self.target = Path(root)
+        self._lock = FolderLock(self.target, ModelError, wait=wait, log=log or _stderr, what="model build")
+        self._lock.acquire()
+        try:
+            repair_swap(self.target, MARKER)
+            if (self.target / MARKER).exists() and not overwrite:
+                raise ModelError(f"{self.target}: already holds a model; choose another folder or overwrite")
+            if self.target.exists() and not self.target.is_dir():
+                raise ModelError(f"{self.target}: not a folder")
+            if self.target.is_dir() and not (self.target / MARKER).exists() and any(self.target.iterdir()):
+                raise ModelError(f"{self.target}: holds files but no model.json, so it is not a model folder; "
+                                 "refusing to replace it (choose a new or empty folder)")
+            self.root = new_building_dir(self.target)
+        except BaseException:
+            self._lock.release()
+            raise
         self.light_directions = np.asarray(light_directions, np.float64)
         self.solid_angles = np.asarray(solid_angles, np.float64)
         self.cameras = cameras
@@ -231,6 +327,23 @@ class ModelWriter:
         self.geometry: dict[str, list] = {k: [] for k in ("vertices", "visible", "status", "eye_centres", "teeth",
                                                            "head_pose")}
         self.extra: dict = {}
+
+    def __enter__(self) -> "ModelWriter":
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:
+            self.abort()
+
+    def abort(self) -> None:
+        """Discard what was written (the previous model stays) and release the lock."""
+        import shutil
+
+        if self._lock is None:
+            return
+        shutil.rmtree(self.root, ignore_errors=True)
+        self._lock.release()
+        self._lock = None
 
     def add_geometry(self, vertices, visible, status, eye_centres, teeth, head_pose) -> None:
         for k, v in (("vertices", vertices), ("visible", visible), ("status", status),
@@ -249,36 +362,70 @@ class ModelWriter:
         if np.abs(rf).max(initial=0) > 65504:
             raise ModelError(f"field {expression}/{camera.name}: values overflow float16")
         base = self.root / "fields" / expression / camera.name
-        base.parent.mkdir(parents=True, exist_ok=True)
-        tmp = base.with_name(f".{camera.name}.tmp.npz")
-        np.savez_compressed(tmp, pixels=np.asarray(pixels, np.int16 if max(camera.width, camera.height) < 32767
-                                                   else np.int32),
-                            tri=np.asarray(tri, np.int32), bary=np.asarray(bary, np.float32),
-                            depth=np.asarray(depth, np.float32))
-        os.replace(tmp, base.with_suffix(".texels.npz"))
-        tmp = base.with_name(f".{camera.name}.tmp.npy")
-        np.save(tmp, rf.astype(np.float16))
-        os.replace(tmp, base.with_suffix(".rf.npy"))
+        save_npz_atomic(base.with_suffix(".texels.npz"),
+                        pixels=np.asarray(pixels, np.int16 if max(camera.width, camera.height) < 32767 else np.int32),
+                        tri=np.asarray(tri, np.int32), bary=np.asarray(bary, np.float32),
+                        depth=np.asarray(depth, np.float32))
+        save_npy_atomic(base.with_suffix(".rf.npy"), rf.astype(np.float16))
         self.fields[f"{expression}/{camera.name}"] = {"texels": int(n)}
 
     def finish(self, blend=None) -> Path:
-        g = {k: np.stack(v) for k, v in self.geometry.items()}
-        g["triangles"] = self.triangles
-        tmp = self.root / ".geometry.tmp.npz"
-        np.savez_compressed(tmp, **g)
-        os.replace(tmp, self.root / "geometry.npz")
-        if blend is not None:
-            blend.save(self.root / "blend.npz")
-        meta = {
-            "format": FORMAT, "version": VERSION,
-            "units": "metres; reflectance functions: linear sRGB radiance per unit irradiance",
-            "lights": {"directions": self.light_directions.tolist(), "solid_angles": self.solid_angles.tolist()},
-            "cameras": [c.to_dict() for c in self.cameras],
-            "expressions": [{"name": n, "category": c} for n, c in self.expressions],
-            "neutral": self.neutral,
-            "template": self.template,
-            "fields": self.fields,
-            **self.extra,
-        }
-        write_json_atomic(self.root / "model.json", meta)
-        return self.root / "model.json"
+        """Write the geometry, the blend model and ``model.json`` (with the checksums), then swap the
+        folder in; returns ``target/model.json``."""
+        if self._lock is None:
+            raise ModelError(f"{self.target}: this writer was already finished or aborted")
+        try:
+            g = {k: np.stack(v) for k, v in self.geometry.items()}
+            g["triangles"] = self.triangles
+            save_npz_atomic(self.root / "geometry.npz", **g)
+            if blend is not None:
+                blend.save(self.root / "blend.npz")
+            meta = {
+                "format": FORMAT, "version": VERSION,
+                "units": "metres; reflectance functions: linear sRGB radiance per unit irradiance",
+                "lights": {"directions": self.light_directions.tolist(),
+                           "solid_angles": self.solid_angles.tolist()},
+                "cameras": [c.to_dict() for c in self.cameras],
+                "expressions": [{"name": n, "category": c} for n, c in self.expressions],
+                "neutral": self.neutral,
+                "template": self.template,
+                "fields": self.fields,
+                "references": {}, "part_sources": {},
+                **self.extra,
+            }
+            meta["files"] = {p.relative_to(self.root).as_posix(): file_entry(p)
+                             for p in sorted(self.root.rglob("*")) if p.is_file() and p.name != MARKER}
+            write_json_atomic(self.root / MARKER, meta)
+            swap_in(self.target, self.root, MARKER)
+        except BaseException:
+            self.abort()
+            raise
+        self._lock.release()
+        self._lock = None
+        return self.target / MARKER
+
+
+def record_files(model: ModelFolder, paths, update=None) -> dict:
+    """Add files written into a finished model (e.g. compressed fields) to its manifest and apply
+    ``update(meta)`` to its ``model.json`` as it is on disk, under the model's lock (no lost update);
+    returns (and sets) ``model.meta``."""
+    root = Path(model.root)
+    with FolderLock(root, ModelError, what="model update"):
+        meta = read_json_manifest(root / MARKER, FORMAT, READS, ModelError, "missing", "mifacerf model")
+        if update is not None:
+            update(meta)
+        if meta.get("files") is not None:
+            for p in paths:
+                meta["files"][Path(p).relative_to(root).as_posix()] = file_entry(p)
+        write_json_atomic(root / MARKER, meta)
+    model.meta = meta
+    model.files = meta.get("files")
+    for p in paths:
+        model._verified.discard(Path(p).relative_to(root).as_posix())
+    return meta
+
+
+def _stderr(message: str) -> None:
+    import sys
+
+    print(message, file=sys.stderr)

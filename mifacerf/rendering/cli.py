@@ -15,11 +15,16 @@ from .compression import DEFAULT_COMPRESS_METHOD, compressing_methods
               help="Registration folder (default: CAPTURE/registration).")
 @click.option("--expressions", default=None, help="Comma-separated subset of registered expressions.")
 @click.option("--no-culling", is_flag=True, help="Blend without §5.1 coherent culling.")
-@click.option("--overwrite", is_flag=True)
-def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
-    """Assemble the relightable morphable model from a registered capture."""
-    from tqdm.auto import tqdm
+@click.option("--overwrite", is_flag=True,
+              help="Replace an existing model in OUT (only once the new one is complete).")
+@click.option("--allow-partial", is_flag=True,
+              help="Build although the registration does not cover every expression of the capture.")
+def build_cmd(capture, out, registration, expressions, no_culling, overwrite, allow_partial):
+    """Assemble the relightable morphable model from a registered capture.
 
+    The model is written beside OUT and swapped in when complete: a failed or interrupted build leaves
+    OUT as it was. Without --expressions, a registration that covers fewer expressions than the capture
+    is an error unless --allow-partial."""
     from ..formats.capture import CaptureError
     from ..formats.registration import RegistrationError
     from .build import build_model
@@ -27,7 +32,7 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite):
 
     try:
         path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
-                           overwrite=overwrite, culling=not no_culling)
+                           overwrite=overwrite, culling=not no_culling, allow_partial=allow_partial)
     except (CaptureError, RegistrationError, ModelError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"model written: {path.parent}")

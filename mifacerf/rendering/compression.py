@@ -25,14 +25,14 @@ exact field; ``model.json`` lists the ranks written per method (``"compressed": 
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from ..formats.files import write_json_atomic
+from ..formats.files import save_npz_atomic
+from ..formats.model import record_files
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
 
@@ -91,19 +91,20 @@ def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COM
     ranks = [int(rank)] if np.isscalar(rank) else [int(r) for r in rank]
     jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
     total = {r: 0 for r in ranks}
+    written = []
     for s, c in bar(jobs, progress, desc=f"compress {method}", unit="field"):
         f = model.field(s, c)
         for r, comp in compress(np.asarray(f.rf), ranks).items():
             path = compressed_path(model.root, f.expression, f.camera, r, method)
-            tmp = path.with_name(f".{path.stem}.tmp.npz")
-            np.savez(tmp, **comp)
-            os.replace(tmp, path)
+            save_npz_atomic(path, compressed=False, **comp)
+            written.append(path)
             total[r] += path.stat().st_size
-    meta = dict(model.meta)
-    done = sorted(set(meta.get("compressed", {}).get(method, [])) | set(ranks))
-    meta["compressed"] = {**meta.get("compressed", {}), method: done}
-    write_json_atomic(Path(model.root) / "model.json", meta)
-    model.meta = meta
+
+    def add_ranks(meta):     # under the model's lock, on model.json as it is on disk
+        done = sorted(set(meta.get("compressed", {}).get(method, [])) | set(ranks))
+        meta["compressed"] = {**meta.get("compressed", {}), method: done}
+
+    record_files(model, written, add_ranks)
     return {"bytes": total if len(ranks) > 1 else total[ranks[0]], "fields": len(jobs)}
 
 

@@ -39,6 +39,7 @@ class Model(ModelFolder):
         if not path.exists():
             raise ModelError(f"{path}: missing; compress the model first "
                              f"(mifacerf compress MODEL --method {method} --rank {rank})")
+        self.check_file(path)
         z = np.load(path)
         comp = {k: z[k] for k in z.files}
         self.loaded_fields.append((self.expressions[s], self.cameras[c].name))
@@ -54,5 +55,6 @@ class Model(ModelFolder):
             path = self.root / "blend.npz"
             if not path.exists():
                 raise ModelError(f"{path}: missing")
+            self.check_file(path)
             self._blend = BlendModel.load(path)
         return self._blend
