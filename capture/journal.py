@@ -18,9 +18,10 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from ..errors import MifacerfError
 
 
-class JournalError(RuntimeError):
+class JournalError(MifacerfError, RuntimeError):
     """The journal cannot be read or written (the message names the file and line)."""
 
 

@@ -50,6 +50,7 @@ from .hardware.controller import (CommandRefused, ControllerError, ControllerTim
 from .hardware.sequence import Sequence, olat_sequence
 from .journal import Journal, fsync_dir, read_journal
 from .motion import MotionCheck, reference_from, representative_lights
+from ..errors import MifacerfError
 
 SESSION_FORMAT = "mifacerf.capture-session"
 SESSION_VERSION = 1
@@ -58,7 +59,7 @@ TAKE_PATTERN = "takes/{expression}/t{take:02d}/{camera}/L{light:03d}.exr"
 IMAGE_PATTERN = "images/{expression}/{camera}/L{light:03d}.exr"
 
 
-class SessionError(RuntimeError):
+class SessionError(MifacerfError, RuntimeError):
     """A session cannot start or continue; the message says why and what to do."""
 
 

@@ -9,6 +9,8 @@ summary the command list shows (the first sentence of the command's help;
 from __future__ import annotations
 
 import importlib
+import os
+import warnings
 
 import click
 
@@ -47,6 +49,8 @@ LAZY_COMMANDS = {
                   "Geometric (Zhang) and radiometric (response, colour) calibration of the cameras (paper §2.1)."),
     "verify": ("mifacerf.formats.cli:verify_cmd",
                "Check every file of a capture, registration, model or performance folder against its manifest."),
+    "studio": ("mifacerf.studio.cli:studio_cmd",
+               "Point editing and registration of CAPTURE in the browser: open the printed URL."),
 }
 
 
@@ -67,6 +71,63 @@ class LazyGroup(click.Group):
             return load_command(name)
         return super().get_command(ctx, name)
 
+    def parse_args(self, ctx, args):
+        ctx.meta.setdefault("mifacerf.argv", list(args))
+        return super().parse_args(ctx, args)
+
+    def command_path(self, ctx) -> str:
+        """``mifacerf <command> [<sub-command>]`` of this invocation (for one-line error messages)."""
+        words, cmd = ["mifacerf"], self
+        for arg in ctx.meta.get("mifacerf.argv", []):
+            if arg.startswith("-") or not isinstance(cmd, click.Group):
+                continue
+            try:
+                sub = cmd.get_command(ctx, arg)
+            except Exception:  # noqa: BLE001 (a command that cannot be imported: its name is enough)
+                sub = None
+            if sub is None:
+                continue
+            words.append(arg)
+            cmd = sub
+        return " ".join(words)
+
+    def invoke(self, ctx):
+        """Run the command; an error reaching here is printed as one line (a traceback only with --debug).
+
+        ``mifacerf <command>: error: <message>`` on stderr, exit code by :func:`mifacerf.errors.exit_code_of`
+        (docs/reliability.md); click's usage errors keep click's own message (exit 2). Python warnings
+        are printed as ``mifacerf <command>: warning: <message>``.
+        """
+        from .errors import exit_code_of, message_of
+
+        debug = bool(ctx.params.get("debug")) or os.environ.get("MIFACERF_DEBUG", "") not in ("", "0")
+        with warnings.catch_warnings():
+            if not debug:
+                warnings.showwarning = lambda message, category, *a, **k: click.echo(
+                    f"{self.command_path(ctx)}: warning: {message}", err=True)
+            try:
+                return super().invoke(ctx)
+            except (click.exceptions.Exit, click.Abort, click.UsageError):
+                raise
+            except click.ClickException as exc:
+                if debug:
+                    raise
+                self._fail(ctx, exc.format_message(), exc.exit_code)
+            except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 (the top of the program)
+                if debug:
+                    raise
+                self._fail(ctx, message_of(exc) if not isinstance(exc, KeyboardInterrupt) else "interrupted",
+                           exit_code_of(exc))
+
+    def _fail(self, ctx, message: str, code: int):
+        first, *rest = message.splitlines() or [""]
+        click.echo(f"{self.command_path(ctx)}: error: {first}", err=True)
+        for line in rest:
+            click.echo(f"  {line}" if line.strip() else line, err=True)
+        if code >= 4 and code != 130:
+            click.echo("  (rerun with --debug, or MIFACERF_DEBUG=1, for the traceback)", err=True)
+        ctx.exit(code if code else 1)
+
     def format_commands(self, ctx, formatter):
         """The command list, lazy commands by their :data:`LAZY_COMMANDS` summary (click's layout)."""
         commands = []
@@ -81,10 +142,20 @@ class LazyGroup(click.Group):
                 formatter.write_dl([(name, cmd.get_short_help_str(limit)) for name, cmd in commands])
 
 
-@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+#: the exit codes of every command: mifacerf.errors.EXIT_CODES written out (``mifacerf --help`` imports no
+#: module but this one; tests/reliability/test_cli_errors.py checks that the two agree)
+EXIT_EPILOG = ("Exit codes (every command): 0 done; 1 bad input or file, or a failed step (one line naming it); "
+               "2 bad usage: unknown option, bad option value, missing argument; 3 refused or interrupted, nothing "
+               "lost: folder locked by another run, or a capture session to resume; 4 internal error (a bug): "
+               "rerun with --debug for the traceback; 130 interrupted by Ctrl-C.")
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]}, epilog=EXIT_EPILOG)
 @click.version_option(package_name="mifacerf")
-def main():
+@click.option("--debug", is_flag=True, help="Show the traceback of an error (also MIFACERF_DEBUG=1).")
+def main(debug):
     """Animatable, relightable facial reflectance fields on Mitsuba 3.
 
     The pipeline: synth (or capture) → register → build → render; demo runs it all.
+    An error prints one line, `mifacerf COMMAND: error: ...`, naming the file or option.
     """

@@ -28,9 +28,10 @@ import numpy as np
 
 from .imageio import read_hdr_or_exr, write_exr
 from .jitarrays import from_jit, to_jit
+from .errors import MifacerfError
 
 
-class EnvironmentError_(ValueError):
+class EnvironmentError_(MifacerfError, ValueError):
     """An environment map of the wrong shape or with invalid values."""
 
 

@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from .formats.files import atomic_target, atomic_write_bytes
+from .errors import MifacerfError
 
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 
-class ImageFileError(OSError):
+class ImageFileError(MifacerfError, OSError):
     """A missing, truncated, corrupt or inconsistent image file; the message names it."""
 
 

@@ -20,6 +20,7 @@ import glob
 import importlib
 import os
 import re
+from .errors import MifacerfError
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 PLUGINS_PACKAGE = "mifacerf.plugins"
@@ -35,7 +36,7 @@ _SEARCH_GLOBS = (
 )
 
 
-class VariantError(RuntimeError):
+class VariantError(MifacerfError, RuntimeError):
     """The requested Mitsuba variant cannot be used on this machine."""
 
 

@@ -16,9 +16,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from ...errors import MifacerfError
 
 
-class CharucoError(RuntimeError):
+class CharucoError(MifacerfError, RuntimeError):
     """The ChArUco board or its detection failed (the message says which and why)."""
 
 

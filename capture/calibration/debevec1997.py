@@ -19,9 +19,10 @@ returned as a curve ``{"x": recorded, "y": linear}`` for
 from __future__ import annotations
 
 import numpy as np
+from ...errors import MifacerfError
 
 
-class ResponseError(ValueError):
+class ResponseError(MifacerfError, ValueError):
     """Not enough usable measurements to recover a response curve."""
 
 

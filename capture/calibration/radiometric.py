@@ -30,10 +30,11 @@ from ...rig import Rig
 from .charts import ChartLayout, colorchecker_reference, grey_reference, patch_means
 from .colour_correction import delta_e2000, factor_exposure, fit_colour_matrix
 from .debevec1997 import ResponseError, recover_response
+from ...errors import MifacerfError
 
 
 
-class RadiometryError(ValueError):
+class RadiometryError(MifacerfError, ValueError):
     """A chart-capture folder that is missing something, or data too poor to calibrate."""
 
 

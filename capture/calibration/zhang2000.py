@@ -20,9 +20,10 @@ import numpy as np
 
 from ...camera import Camera
 from .charuco import BoardSpec, Detection, detect
+from ...errors import MifacerfError
 
 
-class CalibrationError(RuntimeError):
+class CalibrationError(MifacerfError, RuntimeError):
     """Too few usable views, a camera that never saw the board, or a fit that failed."""
 
 

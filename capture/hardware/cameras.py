@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from ...camera import Camera
+from ...errors import MifacerfError
 
 
 @dataclass
@@ -32,7 +33,7 @@ class Frame:
     image: np.ndarray
 
 
-class CameraError(RuntimeError):
+class CameraError(MifacerfError, RuntimeError):
     """A camera failed (not connected, stopped delivering frames)."""
 
 

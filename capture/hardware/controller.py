@@ -25,11 +25,12 @@ from typing import Callable
 
 from . import protocol as P
 from .sequence import Sequence
+from ...errors import MifacerfError
 
 log = logging.getLogger(__name__)
 
 
-class ControllerError(RuntimeError):
+class ControllerError(MifacerfError, RuntimeError):
     """Any failure talking to the strobe controller."""
 
 

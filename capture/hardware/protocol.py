@@ -37,6 +37,7 @@ import binascii
 import enum
 import struct
 from dataclasses import dataclass, field
+from ...errors import MifacerfError
 
 SOF = 0xA5
 VERSION = 1
@@ -48,7 +49,7 @@ CAMERA_RATE_HZ = 60
 MIN_PERIOD_US = 1_000_000 // CAMERA_RATE_HZ  # 16666 us
 
 
-class ProtocolError(ValueError):
+class ProtocolError(MifacerfError, ValueError):
     """Bytes that do not form a valid message (bad length, unknown type, short payload)."""
 
 

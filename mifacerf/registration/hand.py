@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..geometry.margins import margins_from_holes
+from ..errors import MifacerfError
 
 TEMPLATE_SCHEMA = "mifacerf.template/1"
 COARSE_FORMAT = "mifacerf.coarse_points"
@@ -28,7 +29,7 @@ EYE_SIDES = {"eye_left": "L", "eye_right": "R"}
 DEFAULT_DOT_RADIUS = 0.0015
 
 
-class HandInputError(ValueError):
+class HandInputError(MifacerfError, ValueError):
     """A hand-input file that cannot be used at all (the message names it)."""
 
 

@@ -55,6 +55,7 @@ from ..geometry.rigid import apply as apply_T, rigid_from_points, robust_rigid, 
 from ..geometry.triangulate import triangulate
 from ..geometry.visibility import Visibility
 from ..stats import median_p95
+from ..errors import MifacerfError
 
 
 HEAD = ("ear_L", "ear_R", "nose_bridge")
@@ -62,7 +63,7 @@ RIGID_REGIONS = ("forehead", "nose")    #: template regions that move (almost) w
 JAW_REGIONS = ("chin",)                  #: template regions that move (almost) with the jaw
 
 
-class RegistrationInputError(ValueError):
+class RegistrationInputError(MifacerfError, ValueError):
     """Registration cannot start: the message says which input is missing or unusable."""
 
 

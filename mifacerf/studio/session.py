@@ -35,6 +35,7 @@ from ..registration.overrides import FORMAT as OVERRIDES_FORMAT
 from ..registration.overrides import VERSION as OVERRIDES_VERSION
 from ..registration.overrides import overrides_path, read_overrides
 from .images import KINDS, LRU, encode_png, tone_map
+from ..errors import MifacerfError
 
 CURVE_NAMES = MARGIN_NAMES + ("iris_L", "iris_R")
 POINT_NAMES = ("lower_teeth",) + HEAD_POINT_NAMES
@@ -42,7 +43,7 @@ POINT_NAMES = ("lower_teeth",) + HEAD_POINT_NAMES
 STATUS_CODES = ("snapped", "consensus", "single_view", "failed", "flagged", "hand_fixed", "placed", "predicted")
 
 
-class StudioError(ValueError):
+class StudioError(MifacerfError, ValueError):
     """A request the studio cannot serve; the message is one line for the user."""
 
 

@@ -40,12 +40,13 @@ from .presets import CATEGORIES, PRESET_SIZES, Expression
 from .subject import Pose, Textures, vertex_normals
 from .template import REGION_NAMES, Template, delaunay_with_holes, flip_improve, improve, _peel3d  # noqa: F401
 from .textures import DOT_COLOUR, SKIN_BASE, build_atlas, encode_normals, rasterize
+from ..errors import MifacerfError
 
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 ALBEDO_NAMES = ("albedo.png", "albedo.jpg", "albedo.jpeg", "albedo.exr")
 
 
-class MeshSubjectError(ValueError):
+class MeshSubjectError(MifacerfError, ValueError):
     """Bad input for a mesh subject (topology mismatch, NaNs, units ...)."""
 
 

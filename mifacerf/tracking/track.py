@@ -39,12 +39,13 @@ from . import health as HL
 from ..formats.performance import PerformanceFolder
 from .keyframes import LID_MARGINS, LIP_MARGINS, eye_tracks, margin_tracks
 from .track3d import DotTracker, Options, finish_dots, head_poses, rigid_dot_set
+from ..errors import MifacerfError
 
 FORMAT = "mifacerf.track"
 VERSION = 1
 
 
-class TrackError(ValueError):
+class TrackError(MifacerfError, ValueError):
     """Tracking cannot start (the message says which input is missing or unusable)."""
 
 

@@ -1,0 +1,113 @@
+"""The command line's top level: one line `mifacerf <command>: error: <message>` for a bad input, the
+documented exit codes (mifacerf.errors), a traceback only with --debug or MIFACERF_DEBUG=1."""
+import click
+import pytest
+from click.testing import CliRunner
+
+from mifacerf.cli import main
+from mifacerf.errors import (EXIT_CTRL_C, EXIT_ERROR, EXIT_INTERNAL, EXIT_REFUSED, MifacerfError, RefusedError,
+                             refused)
+
+
+def _command(name, exc):
+    @click.command(name)
+    def cmd():
+        raise exc
+    return cmd
+
+
+@pytest.fixture
+def extra_command():
+    added = []
+
+    def add(name, exc):
+        main.add_command(_command(name, exc))
+        added.append(name)
+    yield add
+    for name in added:
+        main.commands.pop(name, None)
+
+
+def one_error_line(result, command):
+    err = result.stderr
+    assert "Traceback" not in err and "Traceback" not in result.stdout
+    lines = [ln for ln in err.splitlines() if ln.startswith(f"mifacerf {command}: error: ")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+@pytest.mark.parametrize("exc, code", [
+    (MifacerfError("capture/manifest.json: missing key 'rig'"), EXIT_ERROR),
+    (ValueError("--spp must be > 0"), EXIT_ERROR),
+    (FileNotFoundError(2, "No such file or directory", "/x/model.json"), EXIT_ERROR),
+    (OSError(28, "No space left on device"), EXIT_ERROR),
+    (refused(ValueError, "/x/model: locked by PID 1 on h since now"), EXIT_REFUSED),
+    (KeyboardInterrupt(), EXIT_CTRL_C),
+    (TypeError("unsupported operand"), EXIT_INTERNAL),
+    (click.ClickException("a click error"), 1),
+])
+def test_errors_are_one_line_with_the_documented_exit_code(extra_command, exc, code):
+    extra_command("boom", exc)
+    r = CliRunner().invoke(main, ["boom"])
+    assert r.exit_code == code, (r.output, r.exception)
+    line = one_error_line(r, "boom")
+    if isinstance(exc, FileNotFoundError):
+        assert line.endswith("/x/model.json: No such file or directory")
+    if code == EXIT_INTERNAL:
+        assert "internal error: TypeError" in line and "--debug" in r.stderr
+
+
+def test_debug_shows_the_traceback(extra_command, monkeypatch):
+    extra_command("boom", ValueError("bad"))
+    r = CliRunner().invoke(main, ["--debug", "boom"])
+    assert isinstance(r.exception, ValueError)
+    monkeypatch.setenv("MIFACERF_DEBUG", "1")
+    r = CliRunner().invoke(main, ["boom"])
+    assert isinstance(r.exception, ValueError)
+
+
+def test_refused_is_both_classes():
+    class StageError(ValueError):
+        pass
+    e = refused(StageError, "locked")
+    assert isinstance(e, StageError) and isinstance(e, RefusedError) and str(e) == "locked"
+    assert type(refused(StageError, "again")) is type(e)
+
+
+def test_stage_errors_derive_from_the_base():
+    from mifacerf.capture.session import SessionError
+    from mifacerf.imageio import ImageFileError
+    from mifacerf.registration.register import RegistrationInputError
+    from mifacerf.variant import VariantError
+    for cls in (SessionError, ImageFileError, RegistrationInputError, VariantError):
+        assert issubclass(cls, MifacerfError), cls
+
+
+def test_nested_group_names_the_sub_command(tmp_path):
+    (tmp_path / "m").mkdir()
+    r = CliRunner().invoke(main, ["evaluate", "render", str(tmp_path), str(tmp_path / "m")])
+    assert r.exit_code == 1, r.output
+    one_error_line(r, "evaluate render")
+
+
+def test_warnings_are_one_line(extra_command):
+    import warnings
+
+    @click.command("warns")
+    def cmd():
+        warnings.warn("view far outside the capture cameras")
+    main.add_command(cmd)
+    try:
+        r = CliRunner().invoke(main, ["warns"])
+    finally:
+        main.commands.pop("warns")
+    assert r.exit_code == 0
+    assert "mifacerf warns: warning: view far outside the capture cameras" in r.stderr
+
+
+def test_help_lists_the_exit_codes():
+    from mifacerf.cli import EXIT_EPILOG
+    from mifacerf.errors import EXIT_CODES
+    assert EXIT_EPILOG == "Exit codes (every command): " + "; ".join(f"{c} {m}" for c, m in EXIT_CODES) + "."
+    r = CliRunner().invoke(main, ["--help"])
+    assert "Exit codes" in r.output and "--debug" in r.output
