@@ -53,6 +53,7 @@ class FaceRFBSDF(mi.BSDF):
         from mifacerf.methods import lookup
 
         lookup(LIGHT_BASIS_METHODS, self.light_basis, "light basis")
+        self.self_visibility = bool(props["self_visibility"]) if "self_visibility" in props else True
         self.n_skin_triangles = None
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
@@ -64,7 +65,8 @@ class FaceRFBSDF(mi.BSDF):
                 verts, W = face.target(mesh=read_target_mesh(target))
             else:
                 verts, W = face.target(expression)
-            self.state = MaterialState(face.model, verts, W, light_basis=self.light_basis)
+            self.state = MaterialState(face.model, verts, W, light_basis=self.light_basis,
+                                       self_visibility=self.self_visibility)
         flags = (mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
                  | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
         self.m_components = [flags]
@@ -78,7 +80,8 @@ class FaceRFBSDF(mi.BSDF):
         pose = shape.pose_state
         self.n_skin_triangles = shape.geometry.n_skin_triangles
         if self.state is None or self.state.model is not shape.face.model:
-            self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis)
+            self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis,
+                                       self_visibility=self.self_visibility)
         else:
             self.state.update(pose.target, pose.weights)
         shape.listeners.append(lambda s: self.state.update(s.pose_state.target, s.pose_state.weights))

@@ -19,10 +19,10 @@ import time
 import numpy as np
 
 
-def _scene(mi, model, integrator: dict, emitter: dict, camera, spp: int, expression: str | None):
+def _scene(mi, model, integrator: dict, emitter: dict, camera, spp: int, expression: str | None, bsdf=None):
     from ..rendering.sensors import sensor_dict
 
-    face = {"type": "facerf_face", "model": str(model), "bsdf": {"type": "facerf_bsdf"}}
+    face = {"type": "facerf_face", "model": str(model), "bsdf": {"type": "facerf_bsdf", **(bsdf or {})}}
     if expression:
         face["expression"] = expression
     return mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor_dict(camera, spp=spp),
@@ -36,7 +36,7 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 
 
 def compare(model, env: str = "sky", integrators=("direct", "path"), size: int = 48, spp: int = 256,
-            expression: str | None = None, camera=None, exact_basis: str = "voronoi") -> list[dict]:
+            expression: str | None = None, camera=None, exact_basis: str = "voronoi", bsdf=None) -> list[dict]:
     """Rows {integrator, psnr, noise_floor, brightness, seconds} of the material against the exact path
     under the environment ``env`` (a generated name or a lat-long file)."""
     from scipy.ndimage import binary_erosion
@@ -62,7 +62,7 @@ def compare(model, env: str = "sky", integrators=("direct", "path"), size: int =
              "seconds": round(t_exact, 2), "spp": 16}]
     for name in integrators:
         integ = {"type": name} if name != "path" else {"type": "path", "max_depth": 3}
-        scene = _scene(mi, model, integ, emitter, camera, spp, expression)
+        scene = _scene(mi, model, integ, emitter, camera, spp, expression, bsdf)
         passes, seconds = [], []
         for seed in (0, 1):
             t0 = time.perf_counter()
@@ -139,6 +139,8 @@ def main(argv=None) -> None:
     ap.add_argument("--expression", default=None)
     ap.add_argument("--integrators", default="direct,path")
     ap.add_argument("--exact-basis", default="voronoi")
+    ap.add_argument("--no-self-visibility", action="store_true", help="the material keeps the captured "
+                    "self-shadowing (shadowed again by the shadow rays)")
     ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
     a = ap.parse_args(argv)
     if a.animation:
@@ -147,7 +149,8 @@ def main(argv=None) -> None:
                 print(integ, r)
         return
     print(format_rows(compare(a.model, a.env, a.integrators.split(","), a.size, a.spp, a.expression,
-                              exact_basis=a.exact_basis)))
+                              exact_basis=a.exact_basis,
+                              bsdf={"self_visibility": False} if a.no_self_visibility else None)))
 
 
 if __name__ == "__main__":

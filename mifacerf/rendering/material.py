@@ -32,6 +32,7 @@ from ..variant import ensure_variant
 from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from .light_interp import LightInterpolator
 from .relight import to_device_f16
+from .self_visibility import MIN_VISIBILITY
 from .views import ViewSampler
 
 
@@ -42,7 +43,7 @@ class MaterialState:
     """
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
-                 light_basis: str = "voronoi"):
+                 light_basis: str = "voronoi", self_visibility: bool = True):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -59,6 +60,11 @@ class MaterialState:
         self.views = ViewSampler.from_cameras(model.cameras)
         self.light_basis = light_basis
         self.lights = LightInterpolator(model.light_directions, method=light_basis).to_device()
+        self.self_visibility = self_visibility
+        if self_visibility:   # divide the captured self-shadowing out (:mod:`.self_visibility`)
+            from .self_visibility import visibility
+
+            self.vis_light = to_jit(mi.Float, visibility(model).reshape(-1))
         self.update(target, weights)
 
     def update(self, target: np.ndarray, weights: np.ndarray) -> None:
@@ -153,6 +159,13 @@ class MaterialState:
             light_ids, light_w = self.lights.weights_jit(rotate(light), use)
             cam_w = [dr.select(use, x, 0.0) for x in cam_w]  # keep NaN from inactive lanes out of sums
             light_w = [dr.select(use, x, 0.0) for x in light_w]
+            if self.self_visibility:   # the captured self-visibility of each light, divided out (with the fill)
+                for li in range(3):
+                    sv = Float(0)
+                    for kk in range(3):
+                        sv += b[kk] * dr.gather(Float, self.vis_light, (u * T + vid[kk]) * self.n_lights
+                                                + light_ids[li], use)
+                    light_w[li] = light_w[li] * dr.select(sv >= MIN_VISIBILITY, dr.rcp(sv), 1.0)
             ps = [Float(0), Float(0), Float(0)]
             for kk in range(3):
                 for d in range(3):
