@@ -13,9 +13,10 @@ below the coarse template's tangent plane — which the reflectance field may st
 answer — is sampled too); ``pdf`` is that mixture's density, and sample/pdf/eval are
 consistent (tested with Mitsuba's chi-square harness).
 
-Caveat (documented, measured in the README): standard integrators trace shadow rays,
-and the face mesh shadows itself although the reflectance fields already hold its
-self-shadowing; the ``facerf`` integrator avoids that for environments.
+Standard integrators trace shadow rays, and the face mesh shadows itself although the reflectance
+fields already hold its self-shadowing; ``self_visibility`` (default on) divides the captured
+self-visibility out where it is known (measured in docs/rendering.md). Eyes, teeth and mouth
+interior are not shaded by this material (zero); the ``facerf`` integrator shades them.
 
 .. list-table::
    * - model
@@ -24,6 +25,13 @@ self-shadowing; the ``facerf`` integrator avoids that for environments.
      - string — ``name`` or ``name=w,...`` (ignored when ``target`` is set)
    * - target
      - string — optional .ply/.npy target mesh in the template's topology (§5 weights)
+   * - light_basis
+     - string — light-stage rule, a ``LIGHT_BASIS_METHODS`` name (default ``voronoi``, or ``hat``)
+   * - self_visibility
+     - boolean — divide the captured self-visibility out (:mod:`mifacerf.rendering.self_visibility`; default true)
+   * - method, rank
+     - string, integer — stored fields, a ``COMPRESSION_METHODS`` name (default ``exact``; ``pca`` with
+       ``rank``: the ``pca<rank>`` files of ``mifacerf compress``, reconstructed at upload)
 
 The shape using this BSDF must be the target mesh (``mifacerf.rendering.scenefile``).
 """
@@ -54,6 +62,11 @@ class FaceRFBSDF(mi.BSDF):
 
         lookup(LIGHT_BASIS_METHODS, self.light_basis, "light basis")
         self.self_visibility = bool(props["self_visibility"]) if "self_visibility" in props else True
+        self.fields = {k: props[k] for k in ("method", "rank") if k in props}
+        if self.fields:
+            from mifacerf.rendering.compression import compression_method
+
+            compression_method(self.fields.get("method", "exact"))
         self.n_skin_triangles = None
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
@@ -66,7 +79,7 @@ class FaceRFBSDF(mi.BSDF):
             else:
                 verts, W = face.target(expression)
             self.state = MaterialState(face.model, verts, W, light_basis=self.light_basis,
-                                       self_visibility=self.self_visibility)
+                                       self_visibility=self.self_visibility, **self.fields)
         flags = (mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
                  | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
         self.m_components = [flags]
@@ -81,7 +94,7 @@ class FaceRFBSDF(mi.BSDF):
         self.n_skin_triangles = shape.geometry.n_skin_triangles
         if self.state is None or self.state.model is not shape.face.model:
             self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis,
-                                       self_visibility=self.self_visibility)
+                                       self_visibility=self.self_visibility, **self.fields)
         else:
             self.state.update(pose.target, pose.weights)
         shape.listeners.append(lambda s: self.state.update(s.pose_state.target, s.pose_state.weights))

@@ -43,7 +43,8 @@ class MaterialState:
     """
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
-                 light_basis: str = "voronoi", self_visibility: bool = True):
+                 light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
+                 rank: int | None = None):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -59,6 +60,12 @@ class MaterialState:
         self.n_lights = model.n_lights
         self.views = ViewSampler.from_cameras(model.cameras)
         self.light_basis = light_basis
+        from .compression import compression_method
+
+        compression_method(method)   # by name, as Renderer(method=, rank=): unknown names list the choices
+        if method != "exact" and not rank:
+            raise ValueError(f"compression method {method!r} needs a rank")
+        self.method, self.rank = method, rank
         self.lights = LightInterpolator(model.light_directions, method=light_basis).to_device()
         self.self_visibility = self_visibility
         if self_visibility:   # divide the captured self-shadowing out (:mod:`.self_visibility`)
@@ -110,7 +117,7 @@ class MaterialState:
                 if model.has_field(s, c):
                     f = model.field(s, c)
                     idx[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f)) + row_off
-                    rf_parts.append(np.asarray(f.rf))
+                    rf_parts.append(self._rows(f, s, c))
                     row_off += len(f)
                 index_parts.append(idx)
                 offsets[s * C + c] = img_off
@@ -121,6 +128,16 @@ class MaterialState:
         self.field_offset = to_jit(mi.UInt32, offsets)
         self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
         self.uploaded = list(sources)
+
+    def _rows(self, f, s: int, c: int) -> np.ndarray:
+        """(N, L, 3) reflectance rows of field (s, c) under this state's compression method: the stored field,
+        or (``pca``) reconstructed at upload from the model's ``<method><rank>`` file (device memory is then
+        that of the exact rows; the stored coefficients are what is read)."""
+        if self.method == "exact":
+            return np.asarray(f.rf)
+        from .compression import reconstruct
+
+        return reconstruct(self.model.compressed_field(s, c, self.rank, self.method))
 
     # ------------------------------------------------------------------ kernel
     def evaluate(self, tri, p, view, light, active=True):

@@ -40,3 +40,40 @@ def test_material_self_visibility_is_a_parameter(toy_model, mi):
                                                         "bsdf": {"type": "facerf_bsdf", "self_visibility": flag}}})
         bsdf = scene.shapes()[0].bsdf()
         assert bsdf.state.self_visibility is flag
+
+
+def test_material_renders_compressed_fields_by_method_name(toy_model, mi, tmp_path):
+    """facerf_bsdf method='pca', rank=R reads the pca<R> files (mifacerf compress) and renders close to the
+    exact fields; an unknown method lists the choices; pca without its files names the missing file."""
+    import shutil
+
+    import pytest
+
+    from mifacerf.camera import Camera
+    from mifacerf.rendering.compression import compress_model
+    from mifacerf.rendering.model import Model
+    from mifacerf.rendering.sensors import sensor_dict
+    from mifacerf.variant import ensure_plugins
+
+    ensure_plugins()
+    root = tmp_path / "model"
+    shutil.copytree(toy_model.root, root)
+    compress_model(Model(root), 8, progress=False, method="pca")
+    cam = Camera.look_at("t", [0.12, 0.1, 1.0], [0, 0, 0], width=24, height=24, focal=96.0)
+
+    def render(**bsdf):
+        scene = mi.load_dict({"type": "scene", "integrator": {"type": "direct"},
+                              "sensor": sensor_dict(cam, spp=16), "light": {"type": "directional",
+                                                                             "direction": [0, 0, -1]},
+                              "face": {"type": "facerf_face", "model": str(root),
+                                       "bsdf": {"type": "facerf_bsdf", **bsdf}}})
+        return np.asarray(mi.render(scene, seed=0))[..., :3]
+
+    exact, pca = render(), render(method="pca", rank=8)
+    assert exact.max() > 0
+    err = np.sqrt(((exact - pca) ** 2).mean())
+    assert err < 0.05 * exact.max(), err
+    with pytest.raises(Exception, match="unknown compression method 'zip'; choose one of exact, pca"):
+        render(method="zip")
+    with pytest.raises(Exception, match="pca3"):
+        render(method="pca", rank=3)
