@@ -176,3 +176,19 @@ def drive_cmd(synth_out, track, truth_spp, **options):
         return evaluate_drive(track, model, synth_out, out, truth_spp=truth_spp, **keywords)
 
     run_drive(drive, track, **options)
+
+
+@evaluate_group.command("material", short_help="The material under Mitsuba's integrators against the exact path.")
+@click.argument("model", type=click.Path(exists=True, file_okay=False))
+@click.option("--env", default="sky", show_default=True, help="A generated environment name or a lat-long file.")
+@click.option("--size", type=int, default=48, show_default=True)
+@click.option("--spp", type=int, default=256, show_default=True, help="Samples per pixel of each material pass.")
+@click.option("--integrators", default="direct,path", show_default=True)
+@click.option("--no-self-visibility", is_flag=True, help="Keep the captured self-shadowing in the material.")
+def material_cmd(model, env, size, spp, integrators, no_self_visibility):
+    """The material under Mitsuba's integrators against the exact path: facerf_bsdf rendered by each
+    integrator (two passes) against the facerf integrator under ENV; PSNR, noise floor, brightness ratio."""
+    from .material import compare, format_rows
+
+    click.echo(format_rows(compare(model, env, integrators.split(","), size, spp,
+                                   bsdf={"self_visibility": False} if no_self_visibility else None)))

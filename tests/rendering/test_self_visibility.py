@@ -77,3 +77,15 @@ def test_material_renders_compressed_fields_by_method_name(toy_model, mi, tmp_pa
         render(method="zip")
     with pytest.raises(Exception, match="pca3"):
         render(method="pca", rank=3)
+
+
+def test_mifacerf_evaluate_material_prints_the_table(toy_model):
+    """'mifacerf evaluate material MODEL' runs the comparison (tiny here) and prints its table."""
+    from click.testing import CliRunner
+
+    from mifacerf.evaluation.cli import evaluate_group
+
+    r = CliRunner().invoke(evaluate_group, ["material", str(toy_model.root), "--env", "sky", "--size", "16",
+                                            "--spp", "4", "--integrators", "direct"])
+    assert r.exit_code == 0, r.output
+    assert "| direct | 2 x 4 |" in r.output and "facerf (exact)" in r.output
