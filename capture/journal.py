@@ -18,6 +18,8 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from ..formats.files import fsync_dir
 from ..errors import MifacerfError
 
 
@@ -69,7 +71,7 @@ class Journal:
         new = not self.path.exists()
         self._f = open(self.path, "ab")
         if new:
-            _fsync_dir(self.path.parent)
+            fsync_dir(self.path.parent)
         elif self.path.stat().st_size:
             with open(self.path, "rb") as f:  # a torn last line: start ours on a fresh line
                 f.seek(-1, os.SEEK_END)
@@ -95,20 +97,3 @@ class Journal:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _fsync_dir(path: Path) -> None:
-    """Make a rename or a new file in ``path`` durable (no-op where directories cannot be opened)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
-fsync_dir = _fsync_dir

@@ -194,6 +194,17 @@ def check_entry(path: Path, entry: dict, error: type[Exception], checksum: bool 
         raise error(f"{path}: checksum mismatch (the file changed or is corrupt)")
 
 
+def verify_entries(root: Path, files: dict, error: type[Exception]) -> list[str]:
+    """Every problem (one line each, naming the file) found by checking each ``files`` entry under ``root``."""
+    problems = []
+    for rel, entry in sorted(files.items()):
+        try:
+            check_entry(Path(root) / rel, entry, error)
+        except error as exc:
+            problems.append(str(exc))
+    return problems
+
+
 # ---------------------------------------------------------------- locks
 _held: dict[str, list] = {}           # lock path -> [fd, count]: re-entrant within one process
 _held_lock = threading.Lock()
@@ -203,6 +214,17 @@ def lock_path(folder: str | os.PathLike) -> Path:
     """The lock file of ``folder``: ``.<name>.lock`` beside it (it survives the folder being replaced)."""
     folder = Path(os.path.abspath(folder))
     return folder.parent / f".{folder.name}.lock"
+
+
+def _try_flock(fd: int) -> bool:
+    """Take the exclusive lock on ``fd`` if it is free (True), else False."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError as exc:
+        if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+            raise
+        return False
 
 
 def _holder(fd: int) -> str:
@@ -253,12 +275,8 @@ class FolderLock:
         return self
 
     def _lock(self, fd: int) -> None:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        if _try_flock(fd):
             return
-        except OSError as exc:
-            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                raise
         who = _holder(fd)
         if self.wait is False:
             raise self.error(f"{self.folder}: locked by {who} (another {self.what} is running; wait for it "
@@ -266,13 +284,7 @@ class FolderLock:
         if self.log is not None:
             self.log(f"{self.folder}: locked by {who}; waiting for it to finish")
         deadline = None if self.wait is True else time.monotonic() + float(self.wait)
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                return
-            except OSError as exc:
-                if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                    raise
+        while not _try_flock(fd):
             if deadline is not None and time.monotonic() > deadline:
                 raise self.error(f"{self.folder}: locked by {_holder(fd)} (still, after {self.wait} s)")
             time.sleep(0.05)

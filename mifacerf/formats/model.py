@@ -58,7 +58,7 @@ import numpy as np
 from ..camera import Camera
 from .files import (FolderLock, check_entry, file_entry, new_building_dir, read_json_manifest,
                     repair_if_needed, repair_swap, require_keys, save_npy_atomic, save_npz_atomic, swap_in,
-                    write_json_atomic)
+                    verify_entries, write_json_atomic)
 
 FORMAT = "mifacerf.model"
 VERSION = 2
@@ -189,13 +189,7 @@ class ModelFolder:
         """Every problem found by checking each listed file's size and checksum (empty: all verify)."""
         if self.files is None:
             return [f"{self.root / MARKER}: a version-1 model without checksums; rebuild it to get them"]
-        problems = []
-        for rel, entry in sorted(self.files.items()):
-            try:
-                check_entry(self.root / rel, entry, ModelError)
-            except ModelError as exc:
-                problems.append(str(exc))
-        return problems
+        return verify_entries(self.root, self.files, ModelError)
 
     # ---------------------------------------------------------------- access
     @property

@@ -67,7 +67,7 @@ import numpy as np
 from .capture import Capture
 from .files import (FolderLock, check_entry, file_entry, fsync_dir, new_building_dir, read_json,
                     read_json_manifest, repair_if_needed, repair_swap, require_keys, save_npz_atomic, swap_in,
-                    write_json_atomic)
+                    verify_entries, write_json_atomic)
 
 FORMAT = "mifacerf.registration"
 VERSION = 2
@@ -245,13 +245,7 @@ class Registration:
         if self.files is None:
             return [f"{self.root / MARKER}: a version-1 registration without checksums; 'mifacerf register' "
                     "adds them"]
-        problems = []
-        for rel, entry in sorted(self.files.items()):
-            try:
-                check_entry(self.root / rel, entry, RegistrationError)
-            except RegistrationError as exc:
-                problems.append(str(exc))
-        return problems
+        return verify_entries(self.root, self.files, RegistrationError)
 
     @property
     def expression_names(self) -> list[str]:
