@@ -64,10 +64,18 @@ def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
     report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth,
                       pictures=out / "cases.png")
     (out / "report.json").write_text(json.dumps(report, indent=1))
+    for e in report["cases"]:
+        click.echo(f"  {e['label'][:48]:48s} {e['env']:9s} face {e['psnr']:.2f} dB, "
+                   f"composite {e['psnr_composite']:.2f} dB, IoU {e['silhouette_iou']:.4f}, "
+                   f"uncovered {100 * e['uncovered']:.2f} %")
     for k, v in report["summary"].items():
-        click.echo(f"case {k}: PSNR {v['psnr'].get('mean', float('nan')):.2f} dB (min {v['psnr'].get('min', 0):.2f}; "
-                   f"truth noise subtracted {v['psnr_noise_corrected'].get('mean', float('nan')):.2f}), "
-                   f"{v['seconds'].get('mean', 0):.2f} s/frame")
+        mean = lambda m: v[m].get("mean", float("nan"))  # noqa: E731
+        click.echo(f"case {k}: PSNR {mean('psnr'):.2f} dB (min {v['psnr'].get('min', 0):.2f}; "
+                   f"truth noise subtracted {mean('psnr_noise_corrected'):.2f}), "
+                   f"composite {mean('psnr_composite'):.2f} dB (min {v['psnr_composite'].get('min', 0):.2f}), "
+                   f"IoU {mean('silhouette_iou'):.4f} (min {v['silhouette_iou'].get('min', 0):.4f}), "
+                   f"uncovered {100 * mean('uncovered'):.2f} % (max {100 * v['uncovered'].get('max', 0):.2f} %), "
+                   f"{mean('seconds'):.2f} s/frame")
     click.echo(f"truth noise floor: {report['truth_noise_psnr']:.1f} dB (lowest case); report: {out / 'report.json'}")
 
 

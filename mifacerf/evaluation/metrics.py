@@ -56,3 +56,56 @@ def summary(values) -> dict:
         return {"n": 0}
     return {"n": int(len(v)), "mean": float(v.mean()), "min": float(v.min()), "median": float(np.median(v)),
             "max": float(v.max())}
+
+
+# What the user sees: the render and the truth composited over the same plate, and their coverage.
+# Both images are premultiplied RGBA (rgb already carries alpha, as the renderer and the truth give them).
+
+def _over(rgba, plate) -> np.ndarray:
+    rgba = np.asarray(rgba, np.float64)
+    return rgba[..., :3] + (1.0 - rgba[..., 3:4]) * np.asarray(plate, np.float64)[..., :3]
+
+
+def composite_psnr(image, truth, plate, coverage: float = 1e-3) -> float:
+    """PSNR of ``image`` over ``plate`` against ``truth`` over the same plate, on every pixel where
+    either has alpha above ``coverage``: a pixel the model misses (or adds) shows the plate in one
+    composite and the subject in the other, so it counts as error. Peak: the truth composite's
+    maximum there. ``inf`` for identical composites."""
+    image, truth = np.asarray(image), np.asarray(truth)
+    if image.shape[-1] != 4 or truth.shape[-1] != 4:
+        raise ValueError("composite_psnr needs premultiplied RGBA images")
+    mask = (image[..., 3] > coverage) | (truth[..., 3] > coverage)
+    return psnr(_over(image, plate), _over(truth, plate), mask)
+
+
+def silhouette_iou(alpha, truth_alpha) -> float:
+    """Soft intersection over union of two coverages in [0, 1]: ``Σ min(a, t) / Σ max(a, t)``
+    (binary masks give the usual IoU; anti-aliased edges count by their coverage)."""
+    a = np.clip(np.asarray(alpha, np.float64), 0, 1)
+    t = np.clip(np.asarray(truth_alpha, np.float64), 0, 1)
+    union = np.maximum(a, t).sum()
+    if union == 0:
+        raise ValueError("both coverages are empty")
+    return float(np.minimum(a, t).sum() / union)
+
+
+def uncovered(alpha, truth_alpha, threshold: float = 0.5) -> tuple[float, np.ndarray]:
+    """The truth's foreground (alpha > ``threshold``) that the model does not cover (its alpha
+    ≤ ``threshold``): (share of the truth's foreground pixels, (H, W) bool map of them)."""
+    fg = np.asarray(truth_alpha) > threshold
+    if not fg.any():
+        raise ValueError("the truth has no foreground")
+    miss = fg & ~(np.asarray(alpha) > threshold)
+    return float(miss.sum() / fg.sum()), miss
+
+
+def coverage_picture(alpha, truth_alpha, threshold: float = 0.5) -> np.ndarray:
+    """(H, W, 3) linear RGB: grey where both cover, red where only the truth does (the model misses
+    it), blue where only the model does (extra), black where neither."""
+    a = np.asarray(alpha) > threshold
+    t = np.asarray(truth_alpha) > threshold
+    pic = np.zeros(a.shape + (3,), np.float32)
+    pic[a & t] = 0.25
+    pic[t & ~a] = (1.0, 0.0, 0.0)
+    pic[a & ~t] = (0.0, 0.2, 1.0)
+    return pic

@@ -36,3 +36,63 @@ def test_noise_corrected_psnr_of_a_perfect_image_is_infinite_or_high(rng):
     b = expect + rng.normal(0, 0.01, expect.shape)
     r = psnr_two_truths(expect, a, b)
     assert r["psnr_noise_corrected"] > r["noise_floor"] + 10 or np.isinf(r["psnr_noise_corrected"])
+
+
+def _disc(n=64, r=20.0):
+    jj, ii = np.meshgrid(np.arange(n), np.arange(n))
+    return ((jj - n / 2 + 0.5) ** 2 + (ii - n / 2 + 0.5) ** 2) <= r * r
+
+
+def test_half_covered_disc_iou_and_uncovered_share_are_exact():
+    from mifacerf.evaluation.metrics import silhouette_iou, uncovered
+
+    disc = _disc()
+    half = disc.copy()
+    half[:, 32:] = False                              # the model covers the disc's left half
+    assert silhouette_iou(half.astype(float), disc.astype(float)) == pytest.approx(half.sum() / disc.sum())
+    assert half.sum() / disc.sum() == pytest.approx(0.5)   # symmetric disc: exactly half
+    share, where = uncovered(half.astype(float), disc.astype(float))
+    assert share == pytest.approx(0.5)
+    assert np.array_equal(where, disc & ~half)
+
+
+def test_soft_iou_counts_partial_coverage():
+    from mifacerf.evaluation.metrics import silhouette_iou
+
+    t = np.ones((4, 4))
+    assert silhouette_iou(np.full((4, 4), 0.25), t) == pytest.approx(0.25)
+    assert silhouette_iou(t, t) == 1.0
+
+
+def test_composite_psnr_identical_is_infinite_and_missing_region_closed_form():
+    from mifacerf.evaluation.metrics import composite_psnr
+
+    disc = _disc()
+    plate = np.full((64, 64, 3), 0.2)
+    truth = np.zeros((64, 64, 4))
+    truth[disc] = (0.8, 0.8, 0.8, 1.0)                # premultiplied, full coverage
+    assert composite_psnr(truth, truth, plate) == float("inf")
+    img = truth.copy()
+    miss = disc.copy()
+    miss[:, :48] = False                              # the model misses the disc's right strip
+    img[miss] = 0.0
+    # over the disc (the union of coverages): the missed pixels show the plate (0.2) instead of 0.8
+    mse = miss.sum() / disc.sum() * 0.6 ** 2
+    assert composite_psnr(img, truth, plate) == pytest.approx(10 * np.log10(0.8 ** 2 / mse))
+    extra = truth.copy()
+    ring = _disc(r=24.0) & ~disc                      # extra coverage the truth does not have
+    extra[ring] = (0.5, 0.5, 0.5, 1.0)
+    union = disc | ring
+    mse = ring.sum() / union.sum() * 0.3 ** 2
+    assert composite_psnr(extra, truth, plate) == pytest.approx(10 * np.log10(0.8 ** 2 / mse))
+
+
+def test_coverage_picture_labels_missed_and_extra():
+    from mifacerf.evaluation.metrics import coverage_picture
+
+    a = np.array([[1.0, 0.0], [1.0, 0.0]])
+    t = np.array([[1.0, 1.0], [0.0, 0.0]])
+    pic = coverage_picture(a, t)
+    assert tuple(pic[0, 1]) == (1.0, 0.0, 0.0)        # truth only: missed, red
+    assert pic[1, 0, 2] == 1.0 and pic[1, 0, 0] == 0  # model only: extra, blue
+    assert pic[1, 1].sum() == 0

@@ -109,6 +109,11 @@ def test_evaluation_report(built_root, tmp_path):
         assert np.isfinite(c["psnr"]) and np.isfinite(c["truth_noise_psnr"]) and c["psnr"] > 10
         assert c["psnr_noise_corrected"] >= c["psnr"]
         assert c["fields"] > 0 and c["seconds"] > 0
+        # what the user sees: composite over the plate, silhouette, the truth's foreground left uncovered
+        assert np.isfinite(c["psnr_composite"]) and c["psnr_composite"] > 5
+        assert 0 < c["silhouette_iou"] <= 1 and 0 <= c["uncovered"] < 1
+    for k in ("psnr_composite", "silhouette_iou", "uncovered"):
+        assert report["summary"]["a"][k]["n"] == 1
     assert report["truth_noise_psnr"] == min(c["truth_noise_psnr"] for c in report["cases"])
     assert set(report["summary"]) == {"a", "b", "c", "d"}
     assert (tmp_path / "cases.png").stat().st_size > 1000
