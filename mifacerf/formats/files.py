@@ -206,7 +206,7 @@ def verify_entries(root: Path, files: dict, error: type[Exception]) -> list[str]
 
 
 # ---------------------------------------------------------------- locks
-_held: dict[str, list] = {}           # lock path -> [fd, count]: re-entrant within one process
+_held: dict[tuple, list] = {}         # (lock path, thread) -> [fd, count]: re-entrant within one thread
 _held_lock = threading.Lock()
 
 
@@ -237,7 +237,7 @@ def _holder(fd: int) -> str:
 
 
 class FolderLock:
-    """Exclusive writer's lock on ``folder`` (a context manager; re-entrant within a process).
+    """Exclusive writer's lock on ``folder`` (a context manager; re-entrant within a thread).
 
     ``wait``: True waits for a live holder (``log`` hears once who holds it), a number waits that many
     seconds at most, False refuses at once; a refusal raises ``error`` ("<folder>: locked by PID … on
@@ -252,7 +252,9 @@ class FolderLock:
         self._fd = None
 
     def acquire(self) -> "FolderLock":
-        key = str(self.path)
+        # re-entrant in the thread that holds it; another thread opens its own descriptor, which flock
+        # treats as another holder (it waits or is refused, as another process would be)
+        key = self._key = (str(self.path), threading.get_ident())
         with _held_lock:
             if key in _held:
                 _held[key][1] += 1
@@ -292,7 +294,7 @@ class FolderLock:
     def release(self) -> None:
         if self._fd is None:
             return
-        key = str(self.path)
+        key = self._key                  # (the thread that acquired it: a finalizer may run elsewhere)
         with _held_lock:
             entry = _held.get(key)
             if entry is not None:

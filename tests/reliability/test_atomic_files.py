@@ -161,3 +161,20 @@ def test_an_interrupted_swap_is_finished_or_undone(tmp_path):
     os.rename(target, tmp_path / ".m.old-1-x")
     F.repair_swap(target, "marker")
     assert (target / "data").read_text() == "new2"
+
+
+def test_another_thread_is_another_holder(tmp_path):
+    """The lock is re-entrant in its own thread only: a reader thread of the same process (the studio's
+    server beside its registration worker) must not walk into a writer's commit."""
+    import threading
+
+    folder = tmp_path / "reg"
+    seen = []
+    with F.FolderLock(folder, ValueError):
+        t = threading.Thread(target=lambda: seen.append(
+            pytest.raises(ValueError, F.FolderLock(folder, ValueError, wait=False).acquire).value))
+        t.start()
+        t.join()
+    assert len(seen) == 1 and f"locked by PID {os.getpid()}" in str(seen[0])
+    with F.FolderLock(folder, ValueError, wait=False):       # free again once released
+        pass
