@@ -33,32 +33,32 @@ def _echo(msg: str) -> None:
 @click.option("--cameras", "camera_backend", default=None,
               help="Camera backend name (real cameras register via the 'mifacerf.camera_backends' entry points).")
 @click.option("--preset", default="tiny", show_default=True, help="Rig size: tiny, draft or paper (mifacerf.rig).")
-@click.option("--positions", type=int, help="Override the preset's arm positions.")
-@click.option("--strobes", type=int, help="Override the preset's strobes per arm.")
-@click.option("--resolution", type=int, help="Override the preset's image size (pixels).")
-@click.option("--expressions", "n_expressions", type=int, help="First N of the paper's 60 expressions "
+@click.option("--positions", type=click.IntRange(min=1), help="Override the preset's arm positions.")
+@click.option("--strobes", type=click.IntRange(min=1), help="Override the preset's strobes per arm.")
+@click.option("--resolution", type=click.IntRange(min=1), help="Override the preset's image size (pixels).")
+@click.option("--expressions", "n_expressions", type=click.IntRange(min=1), help="First N of the paper's 60 expressions "
               "(default: the preset's count).")
 @click.option("--radiometry", "radiometry_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Radiometric calibration (from `mifacerf calibrate response`) recorded in the manifest.")
-@click.option("--max-takes", type=int, default=5, show_default=True, help="Takes per expression before giving up.")
-@click.option("--motion-threshold", type=float, default=0.7, show_default=True,
+@click.option("--max-takes", type=click.IntRange(min=1), default=5, show_default=True, help="Takes per expression before giving up.")
+@click.option("--motion-threshold", type=click.FloatRange(0, 1), default=0.7, show_default=True,
               help="A take is blurred when its sum's sharpness falls below this fraction of the reference.")
-@click.option("--motion-sample", type=int, default=32, show_default=True, help="Frames summed for the motion check.")
-@click.option("--timeout", type=float, default=0.5, show_default=True, help="Seconds to wait for each reply.")
-@click.option("--retries", type=int, default=4, show_default=True, help="Re-sends of an unanswered command.")
+@click.option("--motion-sample", type=click.IntRange(min=1), default=32, show_default=True, help="Frames summed for the motion check.")
+@click.option("--timeout", type=click.FloatRange(min=0, min_open=True), default=0.5, show_default=True, help="Seconds to wait for each reply.")
+@click.option("--retries", type=click.IntRange(min=0), default=4, show_default=True, help="Re-sends of an unanswered command.")
 @click.option("--renderer", type=click.Choice(["procedural", "synthetic"]), default="procedural", show_default=True,
               help="[simulate] What the synthetic cameras render.")
-@click.option("--fault-rate", type=float, default=0.0, show_default=True,
+@click.option("--fault-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True,
               help="[simulate] Link faults per frame (drop, garble, noise), strobe misfires (rate/4 per flash), "
                    "controller resets (4 x rate per run).")
-@click.option("--frame-drop", type=float, default=0.0, show_default=True, help="[simulate] Camera frames lost.")
-@click.option("--motion-rate", type=float, default=0.0, show_default=True, help="[simulate] Takes where the subject moves.")
-@click.option("--motion-mm", type=float, default=8.0, show_default=True, help="[simulate] How far a moving subject drifts.")
+@click.option("--frame-drop", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="[simulate] Camera frames lost.")
+@click.option("--motion-rate", type=click.FloatRange(0, 1), default=0.0, show_default=True, help="[simulate] Takes where the subject moves.")
+@click.option("--motion-mm", type=click.FloatRange(min=0), default=8.0, show_default=True, help="[simulate] How far a moving subject drifts.")
 @click.option("--sensor", type=click.Choice(["ideal", "realistic"]), default="ideal", show_default=True,
               help="[simulate] Camera sensor model (realistic: response curve, colour crosstalk, noise).")
 @click.option("--realtime", is_flag=True, help="[simulate] Run the controller at the real 60 Hz.")
-@click.option("--seed", type=int, default=0, show_default=True, help="[simulate] Random seed.")
-@click.option("--crash-after-frames", type=int, hidden=True,
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="[simulate] Random seed.")
+@click.option("--crash-after-frames", type=click.IntRange(min=1), hidden=True,
               help="Testing: kill the process (no clean-up) after writing this many frames.")
 def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, strobes, resolution, n_expressions,
                 radiometry_file, max_takes, motion_threshold, motion_sample, timeout, retries, renderer, fault_rate,
@@ -120,7 +120,9 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
         try:
             controller = StrobeController(port, timeout=timeout, retries=retries)
         except PortError as exc:
-            raise Interrupted(f"{exc}\nThe session in {out} is saved; resume with `mifacerf capture {out} --resume`.")
+            raise Interrupted(f"{exc}\nThe session in {out} is saved; resume with "
+                              f"`{resume_command(out, simulate, port, camera_backend, timeout, retries)}`"
+                              + ("" if simulate else " (with the right --port if this one is wrong).")) from None
         if not simulate:
             from mifacerf.capture.hardware.cameras import CameraError, camera_backend as make_backend
 
@@ -130,6 +132,7 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
                 controller.close()
                 raise click.ClickException(str(exc)) from exc
             operator = _ConsoleOperator()
+        session.resume_command = resume_command(out, simulate, port, camera_backend, timeout, retries)
         with controller:
             try:
                 rep = session.run(controller, cameras, operator, log=_echo)
@@ -137,10 +140,32 @@ def capture_cmd(out, simulate, resume, port, camera_backend, preset, positions, 
                 raise Interrupted(str(exc)) from exc
             except (SessionError, ControllerError) as exc:
                 raise click.ClickException(str(exc)) from exc
+            except OSError as exc:   # a write failed (disk full, folder removed...): what is written is kept
+                from mifacerf.errors import message_of
+
+                raise Interrupted(f"{message_of(exc)}\nThe session in {out} is saved up to the last complete "
+                                  "image; resume with "
+                                  f"`{resume_command(out, simulate, port, camera_backend, timeout, retries)}`"
+                                  ".") from None
     finally:
         if lab is not None:
             lab.stop()
     click.echo(json.dumps(rep.to_dict(), indent=1))
+
+
+def resume_command(out, simulate: bool, port, camera_backend, timeout: float, retries: int) -> str:
+    """The exact command that resumes the session in ``out`` (a hardware session needs its port and
+    cameras again; timeout and retries are not recorded, so non-default values are repeated)."""
+    import shlex
+
+    words = ["mifacerf", "capture", str(out), "--resume"]
+    if not simulate:
+        words += ["--port", str(port), "--cameras", str(camera_backend)]
+        if timeout != 0.5:
+            words += ["--timeout", repr(timeout)]
+        if retries != 4:
+            words += ["--retries", str(retries)]
+    return " ".join(shlex.quote(w) for w in words)
 
 
 def _new_session(out, simulate, preset_name, positions, strobes, resolution, n_expressions, radiometry_file, config,
@@ -154,17 +179,18 @@ def _new_session(out, simulate, preset_name, positions, strobes, resolution, n_e
         p = preset(preset_name)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--preset") from exc
-    res = resolution or p.resolution
-    lights = LightStage.semicircular_arm(positions or p.n_positions, strobes or p.n_strobes, irradiance_spread=0.05,
-                                         seed=7)
+    given = lambda value, default: default if value is None else value  # noqa: E731 (0 is refused by the option)
+    res = given(resolution, p.resolution)
+    lights = LightStage.semicircular_arm(given(positions, p.n_positions), given(strobes, p.n_strobes),
+                                         irradiance_spread=0.05, seed=7)
     rig = Rig(lights, camera_ring(CAMERA_LAYOUTS[p.n_cameras], width=res, height=res))
     try:
         if simulate and sim_opts.get("renderer") == "synthetic":  # the synthetic subject's own expressions
             from mifacerf.capture.simulation.subject import subject_expressions
 
-            exprs = subject_expressions(n_expressions or p.n_expressions)
+            exprs = subject_expressions(given(n_expressions, p.n_expressions))
         else:
-            exprs = session_expressions(n_expressions or p.n_expressions)
+            exprs = session_expressions(given(n_expressions, p.n_expressions))
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--expressions") from exc
     radiometry, extra = None, {}
@@ -227,13 +253,13 @@ def _rig_from_options(preset_name: str, resolution: int | None):
 @calibrate_group.command("render-boards")
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--preset", default="draft", show_default=True, help="Rig whose cameras are simulated.")
-@click.option("--resolution", type=int, help="Render the stills at this size instead of the preset's.")
-@click.option("--views", type=int, default=20, show_default=True, help="Board poses.")
+@click.option("--resolution", type=click.IntRange(min=1), help="Render the stills at this size instead of the preset's.")
+@click.option("--views", type=click.IntRange(min=1), default=20, show_default=True, help="Board poses.")
 @click.option("--board", "board_spec", default="9x7:0.03:0.022", show_default=True,
               help="SQUARESxSQUARES:square_m:marker_m (ChArUco, DICT_4X4_50).")
-@click.option("--spp", type=int, default=4, show_default=True, help="Samples per pixel.")
-@click.option("--tilt", type=float, default=55.0, show_default=True, help="Largest board tilt in degrees.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--spp", type=click.IntRange(min=1), default=4, show_default=True, help="Samples per pixel.")
+@click.option("--tilt", type=click.FloatRange(0, 89), default=55.0, show_default=True, help="Largest board tilt in degrees.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 def render_boards_cmd(out, preset, resolution, views, board_spec, spp, tilt, seed):
     """Simulate calibration stills: a ChArUco board rendered by Mitsuba into the rig's cameras (truth.json holds
     the intrinsics, distortion and poses used)."""
@@ -261,7 +287,7 @@ def _parse_board(spec: str):
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), help="Calibration JSON (default BOARDS/geometry.json).")
 @click.option("--model", type=click.Choice(["full", "radial", "k1", "none"]), default="full", show_default=True,
               help="Distortion terms estimated (OpenCV k1,k2,p1,p2; k3 = 0).")
-@click.option("--principal-prior", type=float, default=0.01, show_default=True,
+@click.option("--principal-prior", type=click.FloatRange(min=0), default=0.01, show_default=True,
               help="Hold principal points near the image centre: standard deviation as a fraction of the width "
                    "(0: estimate freely; narrow zoom lenses need the prior).")
 @click.option("--no-world", is_flag=True, help="Use the first camera's frame, ignoring the world pose of the world view.")
@@ -331,9 +357,9 @@ def geometry_cmd(boards, out, model, principal_prior, no_world, truth, apply_to)
 @calibrate_group.command("render-charts")
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--preset", default="tiny", show_default=True)
-@click.option("--resolution", type=int, help="Image size instead of the preset's.")
+@click.option("--resolution", type=click.IntRange(min=1), help="Image size instead of the preset's.")
 @click.option("--sensor", type=click.Choice(["realistic", "ideal"]), default="realistic", show_default=True)
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 def render_charts_cmd(out, preset, resolution, sensor, seed):
     """Simulate chart captures: the grey chart under every light and at several exposures, and the
     ColorChecker, recorded by each camera's sensor model (truth.json holds the true radiometry)."""

@@ -276,6 +276,9 @@ class CaptureSession:
         self.bad_lines = bad_lines or []
         self.journal: Journal | None = None
         self.write_image: Callable[[Path, np.ndarray], None] = write_exr  # a hook for fault injection
+        #: the command that resumes this session, quoted in every interruption (the CLI sets the exact one:
+        #: a hardware session needs its --port and --cameras again)
+        self.resume_command = f"mifacerf capture {self.root} --resume"
         self.operator = Operator()
         self.controller: StrobeController | None = None
         self.cameras = None
@@ -398,7 +401,7 @@ class CaptureSession:
     def _resume_hint(self, why: str) -> str:
         done = len(self.state.complete)
         return (f"capture session interrupted: {why}. {done}/{len(self.expressions)} expressions are complete and "
-                f"every image written is safe; resume with `mifacerf capture {self.root} --resume`")
+                f"every image written is safe; resume with `{self.resume_command}`")
 
     def _interrupted(self, why: str, **extra) -> None:
         try:

@@ -9,6 +9,7 @@ summary the command list shows (the first sentence of the command's help;
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import warnings
 
@@ -55,9 +56,48 @@ LAZY_COMMANDS = {
 
 
 def load_command(name: str) -> click.Command:
-    """Import the module of lazy command ``name`` and return the command."""
+    """Import the module of lazy command ``name`` and return the command (its values checked: :func:`harden`)."""
     module, attr = LAZY_COMMANDS[name][0].split(":")
-    return getattr(importlib.import_module(module), attr)
+    return harden(getattr(importlib.import_module(module), attr))
+
+
+_checked_types: dict[type, type] = {}
+
+
+def _checked_type(cls: type) -> type:
+    """A subclass of click type ``cls`` whose values must be finite (numbers) or non-empty (text, paths)."""
+    if cls not in _checked_types:
+        number = issubclass(cls, (click.types.FloatParamType, click.types.IntParamType))
+
+        def convert(self, value, param, ctx):
+            if isinstance(value, str) and not value.strip():
+                self.fail("must not be empty", param, ctx)
+            rv = super(checked, self).convert(value, param, ctx)
+            if number and isinstance(rv, float) and not math.isfinite(rv):
+                self.fail(f"{value!r} is not a finite number", param, ctx)
+            return rv
+        checked = type(cls.__name__, (cls,), {"convert": convert, "__module__": cls.__module__})
+        _checked_types[cls] = checked
+    return _checked_types[cls]
+
+
+def harden(command: click.Command) -> click.Command:
+    """Every number option of ``command`` (and of its sub-commands) refuses NaN and ±inf, every text or
+    path value refuses the empty string (``-o ""`` would be the working directory): a usage error (exit 2)
+    naming the option. Ranges (zero, negative) are each option's own ``click.IntRange``/``FloatRange``."""
+    if getattr(command, "_mifacerf_hardened", False):
+        return command
+    for param in command.params:
+        t = param.type
+        if type(t) in _checked_types.values():
+            continue
+        if isinstance(t, (click.types.FloatParamType, click.types.IntParamType, click.types.StringParamType,
+                          click.Path)):
+            t.__class__ = _checked_type(type(t))
+    for sub in getattr(command, "commands", {}).values():
+        harden(sub)
+    command._mifacerf_hardened = True
+    return command
 
 
 class LazyGroup(click.Group):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -90,7 +91,8 @@ def load_cached(capture: Capture, expression: str, camera: str,
         if str(z["stamp"]) != _stamp(capture, expression, camera, cone_deg):
             return None
         return Proxies(z["diffuse"].astype(np.float32), z["p95"].astype(np.float32))
-    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile):   # a damaged cache is recomputed
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as exc:   # a damaged cache is recomputed
+        warnings.warn(f"{path}: damaged cache file ({type(exc).__name__}: {exc}); recomputed", stacklevel=2)
         return None
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import MifacerfError
 from ..imageio import write_exr, write_png
 from ..variant import ensure_plugins
 
@@ -47,6 +48,26 @@ def read_target_mesh(path) -> np.ndarray:
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"{path}: expected (T, 3) vertices, got {v.shape}")
     return v
+
+
+class SceneError(MifacerfError, ValueError):
+    """A scene file that cannot be loaded or rendered; the message names the file (and the plugin's own error)."""
+
+
+def _plugin_error(exc: RuntimeError, xml_path) -> SceneError | None:
+    """Mitsuba reports an exception raised inside a Python plugin as a RuntimeError whose text holds the
+    Python traceback; the plugin's own error (its last line, ``ModelError: <file>: ...``) is what the user
+    needs: a SceneError with that message and where in the scene it came from (None: not such an error)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    if len(lines) < 2 or "Traceback (most recent call last)" not in lines[0]:
+        return None
+    last = lines[-1]
+    name, sep, message = last.partition(": ")
+    if not sep or not name.replace("_", "").isalnum():
+        return None
+    where = lines[0].split("Traceback (most recent call last)")[0].rstrip(": ")
+    where = where.split("] ", 1)[-1]
+    return SceneError(f"{message} ({name}, {where})" if where else f"{message} ({name} in {xml_path})")
 
 
 def scene_defaults(xml_path) -> dict:
@@ -79,7 +100,10 @@ def load_scene_file(xml_path, params: dict | None = None):
     if given.get("model") and not (Path(given["model"]) / "model.json").exists():
         raise FileNotFoundError(f"parameter 'model': {given['model']} is not a model folder (no model.json)")
     values = {**defaults, **given}
-    scene = mi.load_file(str(xml_path), **{k: str(v) for k, v in given.items()})
+    try:
+        scene = mi.load_file(str(xml_path), **{k: str(v) for k, v in given.items()})
+    except RuntimeError as exc:
+        raise (_plugin_error(exc, xml_path) or exc) from exc
     return scene, values
 
 
@@ -93,7 +117,10 @@ def render_scene_file(xml_path, output, params: dict | None = None, spp: int | N
 
         dr.set_thread_count(int(threads))
     scene, _ = load_scene_file(xml_path, params)
-    img = np.asarray(mi.render(scene, spp=spp or 0), np.float32)
+    try:
+        img = np.asarray(mi.render(scene, spp=spp or 0), np.float32)
+    except RuntimeError as exc:
+        raise (_plugin_error(exc, xml_path) or exc) from exc
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     write_exr(output, img if img.shape[2] in (3, 4) else img[..., :4])

@@ -111,3 +111,27 @@ def test_help_lists_the_exit_codes():
     assert EXIT_EPILOG == "Exit codes (every command): " + "; ".join(f"{c} {m}" for c, m in EXIT_CODES) + "."
     r = CliRunner().invoke(main, ["--help"])
     assert "Exit codes" in r.output and "--debug" in r.output
+
+
+def test_a_plugin_error_inside_mitsuba_becomes_one_line():
+    from mifacerf.rendering.scenefile import SceneError, _plugin_error
+    wrapped = RuntimeError('[parser.cpp:1718] At scenes/face_envmap.xml (line 46, col 6): failed to instantiate '
+                           'shape plugin of type "facerf_face": Traceback (most recent call last):\n'
+                           '    File "plugins/facerf_shape.py", line 73, in __init__\n'
+                           "  ModelError: /m/blend.npz: missing (listed in the folder's manifest)")
+    e = _plugin_error(wrapped, "scenes/face_envmap.xml")
+    assert isinstance(e, SceneError) and isinstance(e, MifacerfError)
+    assert str(e).startswith("/m/blend.npz: missing") and "facerf_face" in str(e) and "\n" not in str(e)
+    assert _plugin_error(RuntimeError("drjit: out of memory"), "s.xml") is None
+
+
+def test_a_damaged_proxy_cache_is_recomputed_with_a_warning(tmp_path):
+    from types import SimpleNamespace
+
+    from mifacerf.registration.proxies import load_cached, proxy_path
+    cap = SimpleNamespace(root=tmp_path)
+    path = proxy_path(cap, "neutral", "cam0")
+    path.parent.mkdir(parents=True)
+    path.write_bytes(b"PK\x03\x04 not a zip at all")
+    with pytest.warns(UserWarning, match="damaged cache file.*recomputed"):
+        assert load_cached(cap, "neutral", "cam0") is None
