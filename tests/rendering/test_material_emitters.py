@@ -1,7 +1,9 @@
 """facerf_bsdf under Mitsuba's other emitters: a closed-form check (directional) and consistency (point, spot)."""
 import numpy as np
+import pytest
 
 
+@pytest.mark.slow
 def test_directional_light_along_a_stage_light_reproduces_that_lights_field(toy_model, mi):
     """A directional emitter exactly along light-stage light l, irradiance 1, through the material and `direct`
     = the model's own relighting with light l alone (the facerf integrator under an environment non-zero
@@ -15,6 +17,7 @@ def test_directional_light_along_a_stage_light_reproduces_that_lights_field(toy_
         assert r["psnr"] > 30 and abs(r["brightness"] - 1) < 0.03, rows
 
 
+@pytest.mark.slow
 def test_point_and_spot_lights_far_along_a_direction_match_the_directional_light(toy_model, mi):
     """A point light (and a wide spot) at distance d along a direction, intensity d² (irradiance 1 at the
     face), renders as the directional emitter of irradiance 1 along it, to the 1/d² falloff across the face."""
