@@ -56,6 +56,7 @@ from ..geometry.triangulate import triangulate
 from ..geometry.visibility import Visibility
 from ..stats import median_p95
 from ..errors import MifacerfError
+from ..validation import check_field
 
 
 HEAD = ("ear_L", "ear_R", "nose_bridge")
@@ -176,6 +177,8 @@ class Registrar:
         for cam in self.names:
             p = load_cached(self.cap, name, cam, self.opt.cone_deg)
             f = self.cap.field(name, cam) if (need_fields or p is None) else None
+            if f is not None:
+                check_field(f, name, cam, lambda light: self.cap.image_path(name, cam, light))
             if p is None:
                 p = proxies_for(self.cap, name, cam, f, self.opt.cone_deg)
             if need_fields:

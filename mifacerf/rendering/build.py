@@ -16,6 +16,7 @@ import numpy as np
 from ..formats.capture import Capture
 from ..formats.registration import Registration, RegistrationError
 from ..geometry.meshscene import MeshScene
+from ..validation import check_field
 from .parts import build_part_fields, choose_references, part_sources, part_visibility
 from ..formats.model import ModelWriter
 
@@ -85,6 +86,7 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
             hits, _ = scene.render_hits(cam, spp=1)
             sel = np.flatnonzero(hits.valid)
             field = reg.field(name, cam.name)  # (L, H, W, 3)
+            check_field(field, name, cam.name, lambda light: reg.capture.image_path(name, cam.name, light))
             rows, cols = sel // cam.width, sel % cam.width
             rf = field[:, rows, cols].transpose(1, 0, 2)
             writer.write_field(name, cam, np.stack([rows, cols], 1), hits.tri[sel], hits.bary[sel], hits.t[sel],

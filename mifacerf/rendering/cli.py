@@ -30,12 +30,25 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite, al
     from .build import build_model
     from ..formats.model import ModelError
 
+    inside = _inside(out, [capture] + ([registration] if registration else []))
+    if inside:
+        raise click.BadParameter(f"{out} is {'inside ' if Path(out).resolve() != Path(inside).resolve() else ''}"
+                                 f"the input folder {inside}: the model goes in a folder of its own", param_hint="-o")
     try:
         path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
                            overwrite=overwrite, culling=not no_culling, allow_partial=allow_partial)
     except (CaptureError, RegistrationError, ModelError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"model written: {path.parent}")
+
+
+def _inside(path, folders) -> str | None:
+    """The first of ``folders`` that ``path`` is, or lies inside (after resolving links), else None."""
+    p = Path(path).resolve()
+    for f in folders:
+        if p == Path(f).resolve() or Path(f).resolve() in p.parents:
+            return str(f)
+    return None
 
 
 @click.command("render")
@@ -48,6 +61,11 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
     from .scenefile import render_scene_file
 
+    if Path(scene_or_model).is_dir():
+        kind = "a model folder" if (Path(scene_or_model) / "model.json").exists() else "a folder"
+        raise click.BadParameter(f"{scene_or_model} is {kind}, not a scene file; render a model through a scene: "
+                                 f"mifacerf render scenes/face_envmap.xml -D model={scene_or_model}",
+                                 param_hint="SCENE_OR_MODEL")
     bad = [d for d in defines if "=" not in d]
     if bad:
         raise click.BadParameter(f"expected NAME=VALUE, got {bad[0]!r}", param_hint="-D")

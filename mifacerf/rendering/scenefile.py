@@ -99,6 +99,10 @@ def load_scene_file(xml_path, params: dict | None = None):
             given[key] = str(Path(given[key]).expanduser().resolve())
     if given.get("model") and not (Path(given["model"]) / "model.json").exists():
         raise FileNotFoundError(f"parameter 'model': {given['model']} is not a model folder (no model.json)")
+    if given.get("envmap"):   # the API's checks (a 2:1 lat-long, finite, >= 0): Mitsuba's envmap stretches any image
+        from ..environment import Environment
+
+        Environment.load(given["envmap"])
     values = {**defaults, **given}
     try:
         scene = mi.load_file(str(xml_path), **{k: str(v) for k, v in given.items()})

@@ -135,3 +135,28 @@ def test_a_damaged_proxy_cache_is_recomputed_with_a_warning(tmp_path):
     path.write_bytes(b"PK\x03\x04 not a zip at all")
     with pytest.warns(UserWarning, match="damaged cache file.*recomputed"):
         assert load_cached(cap, "neutral", "cam0") is None
+
+
+def test_build_refuses_an_output_inside_its_inputs(toy_truth):
+    for out in (toy_truth, toy_truth / "model", toy_truth / "registration" / "m"):
+        r = CliRunner().invoke(main, ["build", str(toy_truth), "-o", str(out)])
+        assert r.exit_code == 2 and "the model goes in a folder of its own" in r.output, r.output
+    assert not (toy_truth / "model").exists() and not (toy_truth / "registration" / "m").exists()
+
+
+def test_render_of_a_model_folder_says_how(tmp_path):
+    (tmp_path / "model.json").write_text("{}")
+    r = CliRunner().invoke(main, ["render", str(tmp_path)])
+    assert r.exit_code == 2 and "-D model=" in r.output, r.output
+
+
+def test_a_stretched_environment_is_refused_like_the_api(tmp_path):
+    import numpy as np
+
+    from mifacerf.imageio import write_exr
+    from mifacerf.rendering.scenefile import load_scene_file
+    write_exr(tmp_path / "wide.exr", np.ones((16, 48, 3), np.float32))
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "model.json").write_text("{}")
+    with pytest.raises(ValueError, match="wide.exr: .*twice as wide as high; got 48x16"):
+        load_scene_file("scenes/face_envmap.xml", {"model": str(tmp_path / "m"), "envmap": str(tmp_path / "wide.exr")})
