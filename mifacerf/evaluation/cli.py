@@ -20,10 +20,10 @@ from ..tracking.cli import drive_options
 @click.option("--synth", "synth_out", required=True, type=click.Path(exists=True, file_okay=False),
               help="The synth output the model was built from (its ground truth is the error reference).")
 @click.option("-o", "--out", default="bench", show_default=True, type=click.Path(file_okay=False))
-@click.option("--frames", "n_frames", type=int, default=3, show_default=True)
-@click.option("--size", type=int, default=256, show_default=True)
+@click.option("--frames", "n_frames", type=click.IntRange(min=1), default=3, show_default=True)
+@click.option("--size", type=click.IntRange(min=1), default=256, show_default=True)
 @click.option("--env", default="sky", show_default=True)
-@click.option("--spp-truth", type=int, default=1024, show_default=True)
+@click.option("--spp-truth", type=click.IntRange(min=1), default=1024, show_default=True)
 @click.option("--quick", is_flag=True, help="Only dense, exact and the first compressed rank.")
 def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick):
     """Benchmark run time per frame against error: dense reference, exact path, compressed ranks."""
@@ -49,9 +49,9 @@ def evaluate_group():
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
 @click.option("-o", "--out", default="evaluation", show_default=True, type=click.Path(file_okay=False))
 @click.option("--envs", default="sky,interior,gradient", show_default=True)
-@click.option("-n", "n", type=int, default=2, show_default=True, help="Cases per kind (a, b, c, d).")
-@click.option("--seed", type=int, default=None, help="Default: a fresh seed from the clock (recorded).")
-@click.option("--spp-truth", type=int, default=1024, show_default=True)
+@click.option("-n", "n", type=click.IntRange(min=1), default=2, show_default=True, help="Cases per kind (a, b, c, d).")
+@click.option("--seed", type=click.IntRange(min=0), default=None, help="Default: a fresh seed from the clock (recorded).")
+@click.option("--spp-truth", type=click.IntRange(min=1), default=1024, show_default=True)
 def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
     """Rendering accuracy of MODEL against path-traced ground truth: captured, blends, novel views, out-of-set."""
     import time
@@ -104,8 +104,8 @@ def registration_cmd(synth_out, registration, json_path, pictures, pictures_dir)
 
 @evaluate_group.command("blending", short_help="The §5 weights against true deformations.")
 @click.option("--subject", type=click.Choice(["synthetic", "toy"]), default="synthetic", show_default=True)
-@click.option("--residual-threshold", type=float, default=None, help="Default: the model's.")
-@click.option("--similarity-threshold", type=float, default=None, help="Default: the model's.")
+@click.option("--residual-threshold", type=click.FloatRange(min=0), default=None, help="Default: the model's.")
+@click.option("--similarity-threshold", type=click.FloatRange(min=0), default=None, help="Default: the model's.")
 @click.option("--out", "out_dir", default=None, type=click.Path(file_okay=False), help="Folder for the pictures.")
 @click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False), help="Write the numbers here.")
 def blending_cmd(subject, residual_threshold, similarity_threshold, out_dir, json_path):
@@ -131,10 +131,10 @@ def blending_cmd(subject, residual_threshold, similarity_threshold, out_dir, jso
 
 
 @evaluate_group.command("blending-speed", short_help="Time the §5 weights: Dr.Jit against the reference.")
-@click.option("--vertices", type=int, default=300, show_default=True)
-@click.option("--sources", type=int, default=60, show_default=True)
-@click.option("--frames", type=int, default=10000, show_default=True)
-@click.option("--threads", type=int, default=None, help="Dr.Jit worker threads (default: all cores).")
+@click.option("--vertices", type=click.IntRange(min=1), default=300, show_default=True)
+@click.option("--sources", type=click.IntRange(min=1), default=60, show_default=True)
+@click.option("--frames", type=click.IntRange(min=1), default=10000, show_default=True)
+@click.option("--threads", type=click.IntRange(min=1), default=None, help="Dr.Jit worker threads (default: all cores).")
 @click.option("--json", "json_path", default=None, type=click.Path(dir_okay=False), help="Also write the numbers here.")
 def blending_speed_cmd(vertices, sources, frames, threads, json_path):
     """Time the §5 weights: the Dr.Jit evaluator against the NumPy/SciPy reference (toy sheet)."""
@@ -149,7 +149,7 @@ def blending_speed_cmd(vertices, sources, frames, threads, json_path):
 @evaluate_group.command("tracking", short_help="A track against the true performance.")
 @click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
 @click.argument("track", required=False, type=click.Path(exists=True, file_okay=False))
-@click.option("--overlay", "overlays", multiple=True, type=int,
+@click.option("--overlay", "overlays", multiple=True, type=click.IntRange(min=0),
               help="Also write TRACK/overlay_F<frame>_<camera>.png for this frame: the tracked dots and, as blue "
                    "crosses, the true ones.")
 def tracking_cmd(synth_out, track, overlays):
@@ -173,7 +173,7 @@ def tracking_cmd(synth_out, track, overlays):
 @click.argument("synth_out", metavar="OUT", type=click.Path(exists=True, file_okay=False))
 @click.argument("track", type=click.Path(exists=True, file_okay=False))
 @drive_options
-@click.option("--truth-spp", type=int, default=64, show_default=True, help="Samples per pixel of the truth.")
+@click.option("--truth-spp", type=click.IntRange(min=1), default=64, show_default=True, help="Samples per pixel of the truth.")
 def drive_cmd(synth_out, track, truth_spp, **options):
     """'mifacerf drive TRACK' with every frame path-traced from OUT's true performance: PSNR per frame,
     the truth's noise floor and coherence (in drive.json), truth above render in strip.png."""
@@ -189,8 +189,8 @@ def drive_cmd(synth_out, track, truth_spp, **options):
 @evaluate_group.command("material", short_help="The material under Mitsuba's integrators against the exact path.")
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
 @click.option("--env", default="sky", show_default=True, help="A generated environment name or a lat-long file.")
-@click.option("--size", type=int, default=48, show_default=True)
-@click.option("--spp", type=int, default=256, show_default=True, help="Samples per pixel of each material pass.")
+@click.option("--size", type=click.IntRange(min=1), default=48, show_default=True)
+@click.option("--spp", type=click.IntRange(min=1), default=256, show_default=True, help="Samples per pixel of each material pass.")
 @click.option("--integrators", default="direct,path", show_default=True)
 @click.option("--no-self-visibility", is_flag=True, help="Keep the captured self-shadowing in the material.")
 def material_cmd(model, env, size, spp, integrators, no_self_visibility):

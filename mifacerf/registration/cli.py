@@ -16,8 +16,8 @@ from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS
 @click.option("--no-dot-removal", is_flag=True, help="Skip removing the dots from the OLAT images.")
 @click.option("--dot-fill", type=click.Choice(list(DOT_FILL_METHODS)), default=DEFAULT_DOT_FILL_METHOD, show_default=True,
               help="How dots are filled: texture-aware with each light's share kept, or harmonic (smooth).")
-@click.option("--radius-px", type=float, default=None, help="3-D search radius of the snap, in pixel footprints.")
-@click.option("--floor", type=float, default=None,
+@click.option("--radius-px", type=click.FloatRange(min=0, min_open=True), default=None, help="3-D search radius of the snap, in pixel footprints.")
+@click.option("--floor", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="Lowest dot-strength threshold, as a fraction of the initial one.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, radius_px, floor, quiet):

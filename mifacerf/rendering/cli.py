@@ -55,8 +55,8 @@ def _inside(path, folders) -> str | None:
 @click.argument("scene_or_model", type=click.Path(exists=True))
 @click.option("-o", "--output", default="render.exr", show_default=True)
 @click.option("-D", "defines", multiple=True, help="Scene parameter, NAME=VALUE (scene files).")
-@click.option("--spp", type=int, default=None, help="Samples per pixel (default: the scene's sampler).")
-@click.option("-t", "--threads", type=int, default=None, help="CPU threads (default: all).")
+@click.option("--spp", type=click.IntRange(min=1), default=None, help="Samples per pixel (default: the scene's sampler).")
+@click.option("-t", "--threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all).")
 def render_cmd(scene_or_model, output, defines, spp, threads):
     """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
     from .scenefile import render_scene_file
@@ -81,7 +81,7 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
 @click.argument("model", type=click.Path(exists=True, file_okay=False))
 @click.option("--method", type=click.Choice(compressing_methods()), default=DEFAULT_COMPRESS_METHOD, show_default=True,
               help="Compression method (mifacerf.rendering.compression.COMPRESSION_METHODS).")
-@click.option("--rank", type=int, multiple=True, default=(8,), show_default=True,
+@click.option("--rank", type=click.IntRange(min=1), multiple=True, default=(8,), show_default=True,
               help="Coefficients per texel (repeat for several).")
 def compress_cmd(model, method, rank):
     """Add PCA-compressed versions of every reflectance field to a model."""

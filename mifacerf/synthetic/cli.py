@@ -16,10 +16,10 @@ import click
 @click.option("--overwrite", is_flag=True, help="Replace a complete capture already in OUT.")
 @click.option("--contact-sheet/--no-contact-sheet", default=True, show_default=True,
               help="Also write OUT/contact_sheet.png.")
-@click.option("--performance", type=float, default=None, metavar="SECONDS",
+@click.option("--performance", type=click.FloatRange(min=0, min_open=True), default=None, metavar="SECONDS",
               help="Also record a multi-view performance this long into OUT/performance (an existing capture "
                    "is reused); see docs/tracking.md.")
-@click.option("--performance-size", type=int, default=192, show_default=True, help="Video resolution (square).")
+@click.option("--performance-size", type=click.IntRange(min=1), default=192, show_default=True, help="Video resolution (square).")
 def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size):
     """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."""
     from ..formats.capture import CaptureError
@@ -53,8 +53,8 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
 @click.option("--pitch", type=float, default=0.0, show_default=True)
 @click.option("--env", "env", default="sky", show_default=True,
               help="Environment: sky, sunsky, interior, gradient, or a lat-long .exr/.hdr path.")
-@click.option("--spp", type=int, default=256, show_default=True)
-@click.option("--size", type=int, default=None, help="Image size (default: the capture camera's).")
+@click.option("--spp", type=click.IntRange(min=1), default=256, show_default=True)
+@click.option("--size", type=click.IntRange(min=1), default=None, help="Image size (default: the capture camera's).")
 @click.option("--dots/--no-dots", default=False, show_default=True,
               help="Show the fiducial dots (the model's renders are dot-free).")
 @click.option("-o", "--output", default=None, help="Output .exr (a .png is written beside it).")

@@ -69,9 +69,9 @@ def contact_sheet(subject, expressions, path, view="front", res=192, spp=32, col
 @click.option("--preset", default="draft", show_default=True, help="tiny | draft | paper")
 @click.option("--names", default=None, help="Comma-separated expression names (from the paper list).")
 @click.option("--view", default="front", show_default=True, type=click.Choice(sorted(VIEWS)))
-@click.option("--res", type=int, default=192, show_default=True)
-@click.option("--spp", type=int, default=32, show_default=True)
-@click.option("--cols", type=int, default=6, show_default=True)
+@click.option("--res", type=click.IntRange(min=1), default=192, show_default=True)
+@click.option("--spp", type=click.IntRange(min=1), default=32, show_default=True)
+@click.option("--cols", type=click.IntRange(min=1), default=6, show_default=True)
 @click.option("--out", default="synthetic_subject.png", show_default=True, type=click.Path(dir_okay=False))
 def preview_cmd(preset, names, view, res, spp, cols, out):
     """Look at the synthetic subject: a contact sheet of its expressions (no capture needed)."""

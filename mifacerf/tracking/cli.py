@@ -18,10 +18,10 @@ import click
 @click.option("--model", default=None, type=click.Path(exists=True, file_okay=False),
               help="A model built from the same subject: its registered neutral is the rest reference and it "
                    "knows the eyeball centres (default: the performance's template).")
-@click.option("--frames", type=int, default=None, help="Track only the first N frames.")
-@click.option("--smooth", type=float, default=1.0, show_default=True,
+@click.option("--frames", type=click.IntRange(min=1), default=None, help="Track only the first N frames.")
+@click.option("--smooth", type=click.FloatRange(min=0), default=1.0, show_default=True,
               help="Temporal smoothing of tracked dots (Gaussian sigma, frames; 0 = off).")
-@click.option("--overlay", "overlays", multiple=True, type=int,
+@click.option("--overlay", "overlays", multiple=True, type=click.IntRange(min=0),
               help="Also write TRACK/overlay_F<frame>_<camera>.png (tracked dots over the video) for this frame.")
 def track_cmd(performance, out, model, frames, smooth, overlays):
     """Track the dots of a multi-view PERFORMANCE; write the per-frame target mesh (paper §6.4)."""
@@ -53,11 +53,11 @@ DRIVE_OPTIONS = (
                  help="Environment(s): sky, sunsky, interior, gradient or a lat-long .exr/.hdr (repeat)."),
     click.option("--camera", default=None,
                  help="A capture camera's name, or yaw,pitch in degrees (default: the model's second camera)."),
-    click.option("--size", type=int, default=None, help="Image size (square; default: the camera's)."),
-    click.option("--spp", type=int, default=4, show_default=True),
+    click.option("--size", type=click.IntRange(min=1), default=None, help="Image size (square; default: the camera's)."),
+    click.option("--spp", type=click.IntRange(min=1), default=4, show_default=True),
     click.option("--frames", default=None, help="Drive only the first N frames, or frames A:B[:STEP] (B excluded)."),
     click.option("--no-exr", is_flag=True, help="Write the PNG frames and the video only."),
-    click.option("--weight-smoothing", type=float, default=2.0, show_default=True,
+    click.option("--weight-smoothing", type=click.FloatRange(min=0), default=2.0, show_default=True,
                  help="Temporal filter of the §5 weights (Gaussian sigma in frames; 0 = off)."),
 )
 
