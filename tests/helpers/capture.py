@@ -68,3 +68,16 @@ if __name__ == "__main__":
     out = pathlib.Path(__file__).parents[1] / "capture" / "data" / "transcript_olat.jsonl"
     res, stats = record_transcript(out)
     print(f"wrote {out}: {len(res.events)} events, {stats}")
+
+
+def tiny_capture_without_truth(root, expressions):
+    """The ``tiny`` synthetic capture of ``expressions`` in ``root/synth``, its truth moved out of reach to
+    ``root/hidden-truth`` (what a stage under test must never read); returns (capture folder, truth folder)."""
+    import shutil
+
+    from mifacerf.synthetic.synth import synthesize
+
+    cap = synthesize(root / "synth", preset="tiny", expressions=expressions, progress=False)
+    truth = root / "hidden-truth"
+    shutil.move(str(root / "synth" / "truth"), truth)
+    return cap, truth

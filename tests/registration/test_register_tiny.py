@@ -7,22 +7,17 @@ Thresholds are honest for ``tiny`` (three cameras at 128 px, 2.3 mm per pixel, d
 fiducial must be seen by two views to be triangulated, which only ~55 % of them are; the draft
 preset's numbers are in docs/registration.md.
 """
-import shutil
-
 import numpy as np
 import pytest
+from helpers.capture import tiny_capture_without_truth
 from openwatch import watch_opens
 
 TINY_EXPRESSIONS = ["neutral", "viseme_aa", "head_turn_left"]
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     from mifacerf.registration import register_capture
-    from mifacerf.synthetic.synth import synthesize
 
-    root = tmp_path_factory.mktemp("tiny")
-    cap = synthesize(root / "synth", preset="tiny", expressions=TINY_EXPRESSIONS, progress=False)
-    truth = root / "hidden-truth"
-    shutil.move(str(root / "synth" / "truth"), truth)
+    cap, truth = tiny_capture_without_truth(tmp_path_factory.mktemp("tiny"), TINY_EXPRESSIONS)
     with watch_opens(truth) as opened:
         out = register_capture(cap, progress=False)
     return cap, truth, out, opened

@@ -3,6 +3,7 @@ out of reach (the studio must never read it), and a fresh copy of the capture fo
 import shutil
 
 import pytest
+from helpers.capture import tiny_capture_without_truth
 
 EXPRESSIONS = ["neutral", "smile"]
 
@@ -10,13 +11,7 @@ EXPRESSIONS = ["neutral", "smile"]
 @pytest.fixture(scope="session")
 def studio_capture(tmp_path_factory):
     """(pristine capture folder, hidden truth folder)."""
-    from mifacerf.synthetic.synth import synthesize
-
-    root = tmp_path_factory.mktemp("studio")
-    cap = synthesize(root / "synth", preset="tiny", expressions=EXPRESSIONS, progress=False)
-    truth = root / "hidden-truth"
-    shutil.move(str(root / "synth" / "truth"), truth)
-    return cap, truth
+    return tiny_capture_without_truth(tmp_path_factory.mktemp("studio"), EXPRESSIONS)
 
 
 @pytest.fixture
