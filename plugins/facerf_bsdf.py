@@ -124,7 +124,11 @@ class FaceRFBSDF(mi.BSDF):
 
     def eval(self, ctx, si, wo, active=True):
         if self.state is None:
-            raise ValueError("facerf_bsdf: no model: give it a 'model' parameter or use it on a facerf_face shape")
+            if self.shape is None:
+                raise ValueError("facerf_bsdf: no model: give it a 'model' parameter or use it on a facerf_face shape")
+            # attached to a shape whose construction failed (its error was raised then): Dr.Jit still traces
+            # every registered BSDF in a later scene's virtual calls, so this instance must stay silent
+            return dr.zeros(mi.Color3f, dr.width(si.p))
         view = si.to_world(si.wi)
         light = si.to_world(wo)
         ok = mi.Bool(active) & (dr.squared_norm(view) > 0.5) & (dr.squared_norm(light) > 0.5)
