@@ -49,9 +49,50 @@ class RenderStats:
     unseen_samples: int = 0
     lights_skipped: int = 0
     cached: bool = False
+    #: renders the model cannot answer (view far outside the capture cameras, a collapsed target, parts
+    #: with no skin around them): one message each; also issued as a :class:`RenderWarning`
+    warnings: list = field(default_factory=list)
 
     def add_time(self, stage: str, seconds: float) -> None:
         self.times[stage] = self.times.get(stage, 0.0) + seconds
+
+    def warn(self, message: str) -> None:
+        import warnings
+
+        self.warnings.append(message)
+        warnings.warn(message, RenderWarning, stacklevel=3)
+
+
+class RenderWarning(UserWarning):
+    """A render that cannot be right (docs/reliability.md): counted in :attr:`RenderStats.warnings`."""
+
+
+#: a view whose direction from the head is farther than this from every capture camera's is outside
+#: what the captured fields can answer (warned, still rendered)
+VIEW_WARN_DEG = 45.0
+#: a target whose bounding box is smaller than this (metres) in every axis is collapsed: nothing is drawn
+DEGENERATE_TARGET_M = 1e-4
+
+
+def view_checks(target: np.ndarray, camera: Camera, cameras, stats: RenderStats) -> bool:
+    """Warn about renders outside the model's reach; False when nothing should be drawn (collapsed target)."""
+    target = np.asarray(target, np.float64)
+    if target.ndim != 2 or not target.size or not np.isfinite(target).all():
+        return True        # the frame plan refuses these with a ValueError
+    extent = np.ptp(target, axis=0)
+    if extent.max() < DEGENERATE_TARGET_M:
+        stats.warn(f"degenerate target mesh (all vertices within {extent.max():.2g} m): nothing drawn")
+        return False
+    centre = target.mean(axis=0)
+    d = camera.centre - centre
+    dirs = np.array([c.centre - centre for c in cameras], np.float64)
+    if len(dirs) and np.linalg.norm(d) > 0:
+        cos = dirs @ d / (np.linalg.norm(dirs, axis=1) * np.linalg.norm(d) + 1e-12)
+        angle = float(np.degrees(np.arccos(np.clip(cos.max(), -1.0, 1.0))))
+        if angle > VIEW_WARN_DEG:
+            stats.warn(f"view {angle:.0f} deg from the nearest capture camera (bound {VIEW_WARN_DEG:g}): "
+                       "outside what the captured fields can answer")
+    return True
 
 
 class Renderer:
@@ -239,6 +280,8 @@ class Renderer:
             if self._last is not None and self._last[0] == key:
                 stats.cached = True
                 return self._last[1].copy()
+        if not view_checks(target, camera, model.cameras, stats):
+            return np.zeros((camera.height, camera.width, 4), np.float32)
         t0 = time.perf_counter()
         if plan is None:
             plan = plan_frame(model, target, expression_weights, camera, frame)
@@ -273,6 +316,9 @@ class Renderer:
             stats.fallback_samples += int(np.asarray(fell_back).sum())
         stats.add_time("shade", time.perf_counter() - t0)
 
+        if use_parts and (~on_skin).any() and not on_skin.any():
+            stats.warn("eyes/teeth/mouth seen with no skin around them (the view looks at the head from "
+                       "behind or inside): they are drawn floating")
         if use_parts and (~on_skin).any():
             t0 = time.perf_counter()
             pf = self.part_frame(parts, camera, self.light_basis(env), stats, expression_weights)
