@@ -1,7 +1,8 @@
 """``mifacerf demo``: the main job, end to end, on the embedded synthetic subject.
 
-Stages (each timed; a stage whose output is already in OUT is reused, so a second run
-takes minutes):
+Stages (each timed; a stage is skipped when the content digests of its inputs and outputs match
+what ``OUT/steps.json`` recorded when it ran — :mod:`mifacerf.steps` — so a second run with nothing
+changed runs nothing, rewrites nothing and takes seconds):
 
 1. **capture** — the simulated light stage photographs the synthetic subject (``OUT/capture``,
    ground truth in ``OUT/truth``), with its contact sheet;
@@ -23,6 +24,9 @@ from pathlib import Path
 
 import click
 import numpy as np
+
+from .formats.files import atomic_write_bytes
+from .steps import Steps
 
 ENVIRONMENTS = ("sky", "interior", "gradient")
 
@@ -46,6 +50,10 @@ class Stages:
         lines += [f"{n.ljust(width)}  {s:8.1f}" for n, s in self.rows]
         lines.append(f"{'total'.ljust(width)}  {sum(s for _, s in self.rows):8.1f}")
         return "\n".join(lines)
+
+
+def write_json_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
 
 
 def stage_capture(out: Path, preset: str) -> Path:
@@ -74,9 +82,7 @@ def stage_model(cap: Path, reg: Path, out: Path, ranks=(8,), method: str | None 
     from .rendering.model import Model
 
     model = out / "model"
-    stamp = (reg / "registration.json").stat().st_mtime
-    if not ((model / "model.json").exists() and (model / "model.json").stat().st_mtime > stamp):
-        build_model(cap, model, reg, overwrite=True)
+    build_model(cap, model, reg, overwrite=True)    # (the job's step record decides whether this runs)
     m = Model(model)
     method = method or DEFAULT_COMPRESS_METHOD   # a COMPRESSION_METHODS name that compresses
     for k in ranks:
@@ -160,18 +166,33 @@ def demo_cmd(out, preset, fast):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     st = Stages()
+    steps = Steps(out, log=click.echo)
     metrics = {"preset": preset}
-    cap = st.run("capture (simulated light stage)", stage_capture, out, preset)
-    reg = st.run("registration", stage_register, cap)
-    model = st.run("model build + compression", stage_model, cap, reg, out)
-    metrics["renders"] = st.run("renders (blends x environments x views)", stage_renders, model, out)
-    metrics["performance"] = st.run("performance (track + drive)", stage_performance, out, model)
-    m = st.run("metrics (ground truth, benchmark)", stage_metrics, out, model, fast)
+    cap, reg, model = out / "capture", out / "capture" / "registration", out / "model"
+    # each step is skipped when the digests of its inputs and outputs match OUT/steps.json (mifacerf.steps)
+    st.run("capture (simulated light stage)", steps.run, "capture", [{"preset": preset}],
+           [cap, out / "contact_sheet.png"], lambda: stage_capture(out, preset) and None)
+    st.run("registration", steps.run, "register", [cap, cap / "hand"], [reg], lambda: stage_register(cap) and None)
+    st.run("model build + compression", steps.run, "model", [cap, reg, {"ranks": [8]}], [model],
+           lambda: stage_model(cap, reg, out) and None)
+    metrics["renders"] = st.run("renders (blends x environments x views)", steps.run, "renders", [model],
+                                [out / "renders", out / "renders.png"], stage_renders, model, out)
+    metrics["performance"] = st.run("performance (track + drive)", steps.run, "performance", [model],
+                                    [out / "performance_render"], stage_performance, out, model)
+    m = st.run("metrics (ground truth, benchmark)", steps.run, "metrics", [model, {"fast": fast}],
+               [out / "metrics_cases.png", out / "bench"], stage_metrics, out, model, fast)
     metrics["cases"] = m["cases"]["summary"]
     metrics["truth_noise_psnr"] = m["cases"]["truth_noise_psnr"]
     metrics["bench"] = m["bench"]["results"]
-    metrics["stages_seconds"] = dict(st.rows)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1, default=float))
+    # the time each stage's outputs took to make (a skipped stage: the run that made them)
+    names = dict(zip(["capture", "register", "model", "renders", "performance", "metrics"], [n for n, _ in st.rows]))
+    metrics["stages_seconds"] = {names[k]: steps.seconds(k) for k in names}
+    text = json.dumps(metrics, indent=1, default=float)
+    mpath = out / "metrics.json"
+    if not (mpath.exists() and mpath.read_text() == text):     # nothing changed: not rewritten
+        write_json_text(mpath, text)
+    if steps.skipped:
+        click.echo(f"skipped (inputs and outputs unchanged): {', '.join(steps.skipped)}")
     click.echo("")
     click.echo(st.table())
     click.echo("")
