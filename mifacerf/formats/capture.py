@@ -31,6 +31,7 @@ import numpy as np
 
 from ..imageio import ImageFileError, read_exr, write_exr
 from ..rig import Rig
+from ..errors import MifacerfError
 from .files import read_json, require_keys, save_npy_atomic, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.capture"
@@ -44,7 +45,7 @@ LIGHT_KEYS = ("index", "direction", "solid_angle", "irradiance", "arm_position",
 CAMERA_KEYS = ("name", "width", "height", "K", "dist", "R", "t", "radiometry")
 
 
-class CaptureError(ValueError):
+class CaptureError(MifacerfError, ValueError):
     """A capture folder that is missing, incomplete or inconsistent; the message names the file."""
 
 

@@ -31,6 +31,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from ..errors import refused
+
 
 # ---------------------------------------------------------------- atomic writes
 _umask_lock = threading.Lock()
@@ -241,7 +243,8 @@ class FolderLock:
 
     ``wait``: True waits for a live holder (``log`` hears once who holds it), a number waits that many
     seconds at most, False refuses at once; a refusal raises ``error`` ("<folder>: locked by PID … on
-    HOST since …"). A holder that died left nothing to clean up: the kernel released its lock.
+    HOST since …"), made a :class:`mifacerf.errors.RefusedError` too (:func:`mifacerf.errors.refused`:
+    the command line exits 3). A holder that died left nothing to clean up: the kernel released its lock.
     """
 
     def __init__(self, folder: str | os.PathLike, error: type[Exception] = OSError, wait: bool | float = True,
@@ -281,14 +284,14 @@ class FolderLock:
             return
         who = _holder(fd)
         if self.wait is False:
-            raise self.error(f"{self.folder}: locked by {who} (another {self.what} is running; wait for it "
-                             "to finish)")
+            raise refused(self.error, f"{self.folder}: locked by {who} (another {self.what} is running; "
+                          "wait for it to finish)")
         if self.log is not None:
             self.log(f"{self.folder}: locked by {who}; waiting for it to finish")
         deadline = None if self.wait is True else time.monotonic() + float(self.wait)
         while not _try_flock(fd):
             if deadline is not None and time.monotonic() > deadline:
-                raise self.error(f"{self.folder}: locked by {_holder(fd)} (still, after {self.wait} s)")
+                raise refused(self.error, f"{self.folder}: locked by {_holder(fd)} (still, after {self.wait} s)")
             time.sleep(0.05)
 
     def release(self) -> None:

@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
+from ..errors import MifacerfError
 from .files import (FolderLock, check_entry, file_entry, new_building_dir, read_json_manifest,
                     repair_if_needed, repair_swap, require_keys, save_npy_atomic, save_npz_atomic, swap_in,
                     verify_entries, write_json_atomic)
@@ -69,7 +70,7 @@ REQUIRED = ("lights", "cameras", "expressions", "neutral", "template", "fields",
             "part_sources")
 
 
-class ModelError(ValueError):
+class ModelError(MifacerfError, ValueError):
     """A missing or inconsistent model folder; the message names the file."""
 
 

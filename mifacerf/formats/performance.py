@@ -44,6 +44,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..imageio import ImageFileError, read_exr, write_exr
+from ..errors import MifacerfError
 from .files import read_json, read_json_manifest, require_keys, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.performance"
@@ -55,7 +56,7 @@ FRAME_PATTERN = "frames/{camera}/F{frame:05d}.exr"
 KEYFRAMES_FORMAT = "mifacerf.performance_keyframes"
 
 
-class PerformanceError(ValueError):
+class PerformanceError(MifacerfError, ValueError):
     """A missing or inconsistent performance folder; the message names the file."""
 
 

@@ -65,6 +65,7 @@ from pathlib import Path
 import numpy as np
 
 from .capture import Capture
+from ..errors import MifacerfError
 from .files import (FolderLock, check_entry, file_entry, fsync_dir, new_building_dir, read_json,
                     read_json_manifest, repair_if_needed, repair_swap, require_keys, save_npz_atomic, swap_in,
                     verify_entries, write_json_atomic)
@@ -79,7 +80,7 @@ STAGING = ".staging-"
 REQUIRED = ("capture", "expressions", "files")
 
 
-class RegistrationError(ValueError):
+class RegistrationError(MifacerfError, ValueError):
     """A missing or inconsistent registration folder; the message names the file."""
 
 

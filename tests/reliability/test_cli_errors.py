@@ -79,8 +79,56 @@ def test_stage_errors_derive_from_the_base():
     from mifacerf.imageio import ImageFileError
     from mifacerf.registration.register import RegistrationInputError
     from mifacerf.variant import VariantError
+    from mifacerf.formats.capture import CaptureError
+    from mifacerf.formats.model import ModelError
+    from mifacerf.formats.performance import PerformanceError
+    from mifacerf.formats.registration import RegistrationError
     for cls in (SessionError, ImageFileError, RegistrationInputError, VariantError):
         assert issubclass(cls, MifacerfError), cls
+    for cls in (ModelError, RegistrationError, CaptureError, PerformanceError):   # the folder formats' too
+        assert issubclass(cls, MifacerfError) and issubclass(cls, ValueError), cls
+
+
+def test_a_locked_folder_exits_3_also_through_a_click_error(extra_command, tmp_path):
+    """A FolderLock refusal is a RefusedError (exit 3), raised as is or wrapped by a command in a
+    click.ClickException (which alone would exit 1)."""
+    from mifacerf.formats.files import FolderLock
+    from mifacerf.formats.model import ModelError
+
+    folder = tmp_path / "model"
+
+    @click.command("locked")
+    @click.option("--wrap", is_flag=True)
+    def cmd(wrap):
+        try:
+            FolderLock(folder, ModelError, wait=False, what="model build").acquire()
+        except ModelError as exc:
+            if wrap:
+                raise click.ClickException(str(exc)) from exc
+            raise
+    main.add_command(cmd)
+    try:
+        import threading
+
+        held, done = threading.Event(), threading.Event()
+
+        def holder():             # another thread is another holder (flock per descriptor)
+            with FolderLock(folder, ModelError):
+                held.set()
+                done.wait(30)
+        t = threading.Thread(target=holder)
+        t.start()
+        held.wait(30)
+        try:
+            for args in ([], ["--wrap"]):
+                r = CliRunner().invoke(main, ["locked", *args])
+                assert r.exit_code == EXIT_REFUSED, (args, r.output)
+                assert "locked by PID" in one_error_line(r, "locked")
+        finally:
+            done.set()
+            t.join()
+    finally:
+        main.commands.pop("locked", None)
 
 
 def test_nested_group_names_the_sub_command(tmp_path):
