@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rendering.chunks import plan_frame
+from ..rendering.frame import resolve_pixels
 
 
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
@@ -89,10 +90,5 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
     wsum_p = np.choose(tier, [wsum["primary"], wsum["fallback"], wsum["any"]])
     covered = wsum_p > 1e-9
     colour = np.where(covered[:, None], acc_p / np.maximum(wsum_p, 1e-300)[:, None], 0.0)
-    h, w = camera.height, camera.width
-    rgba = np.zeros((h * w, 4))
-    pix = idx // spp
-    for ch in range(3):
-        rgba[:, ch] = np.bincount(pix, weights=colour[:, ch], minlength=h * w)
-    rgba[:, 3] = np.bincount(pix, weights=covered.astype(float), minlength=h * w)
-    return (rgba / spp).reshape(h, w, 4).astype(np.float32)
+    rgba, _ = resolve_pixels(idx // spp, colour, covered, camera.height, camera.width, spp)  # the renderer's alpha rule
+    return rgba

@@ -20,6 +20,12 @@ the point, with the primary weights; where no primary chunk sees it, with the fa
 weights; where no chunk sees it, over the chunks regardless of the depth test with the
 fallback weights (documented fall-back); where no chunk covers the point at all,
 ``covered`` is False.
+
+A frame's pixels (:func:`resolve_pixels`): the alpha is the share of a pixel's samples that hit the
+target geometry (skin, extensions, eyes, teeth), so the silhouette is the geometry's anti-aliased outline
+whatever the fields cover; the colour is the mean of the pixel's covered samples, and a pixel whose hits
+have no field coverage at all takes the mean colour of the nearest pixel in the image that has some
+(documented fall-back: no holes where a surface no field sees is hit, no matte editing in a composite).
 """
 from __future__ import annotations
 
@@ -28,6 +34,40 @@ import numpy as np
 from ..jitarrays import to_jit
 from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from ..variant import ensure_variant
+
+def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, height: int, width: int,
+                   spp: int) -> tuple[np.ndarray, int]:
+    """Box-filter a frame's hit samples into (H, W, 4) float32 linear RGB premultiplied by alpha.
+
+    ``pix`` (N,): the pixel (row-major index) of each sample that hit the target geometry; ``colour``
+    (N, 3) its shaded colour, used where ``covered`` (N,) bool (some field saw the point). Alpha: hits /
+    ``spp``, the geometry's coverage of the pixel. RGB: alpha times the mean of the pixel's covered
+    samples — a pixel whose samples are all covered gets exactly Σ colour / ``spp``; a pixel with hits
+    but no covered sample takes the mean of the nearest pixel (Euclidean, in the image) that has one;
+    with no covered sample in the whole frame, black. Returns (image, pixels filled that way).
+    """
+    n = height * width
+    pix = np.asarray(pix, np.int64)
+    covered = np.asarray(covered, bool)
+    hits = np.bincount(pix, minlength=n).astype(np.float64)
+    count = np.bincount(pix, weights=covered.astype(np.float64), minlength=n)
+    total = np.stack([np.bincount(pix, weights=np.where(covered, colour[:, ch], 0.0), minlength=n)
+                      for ch in range(3)], axis=-1)
+    mean = total / np.maximum(count, 1.0)[:, None]
+    empty = (hits > 0) & (count == 0)
+    filled = 0
+    if empty.any() and (count > 0).any():
+        from scipy.ndimage import distance_transform_edt
+
+        _, (ii, jj) = distance_transform_edt((count == 0).reshape(height, width), return_indices=True)
+        nearest = (ii * width + jj).reshape(-1)
+        mean[empty] = mean[nearest[empty]]
+        filled = int(empty.sum())
+    rgba = np.empty((n, 4))
+    rgba[:, :3] = (total + (hits - count)[:, None] * mean) / spp
+    rgba[:, 3] = hits / spp
+    return rgba.reshape(height, width, 4).astype(np.float32), filled
+
 
 class LitFrame:
     """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.

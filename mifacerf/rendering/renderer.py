@@ -14,7 +14,9 @@ Per frame (:func:`.chunks.plan_frame` gives the render chunks):
    depth test, weighted by the interpolated chunk weight and renormalised.
 
 No shadow is ever traced for the skin: the reflectance fields hold their own
-self-shadowing. Output: (H, W, 4) float32, linear sRGB premultiplied by coverage.
+self-shadowing. Output: (H, W, 4) float32, linear sRGB premultiplied by alpha, the share of each pixel's
+samples that hit the target geometry (:func:`.frame.resolve_pixels`: anti-aliased, no holes where no field
+covers a hit — those take the nearest covered pixel's colour).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
 from ..variant import ensure_plugins
 from .chunks import FramePlan, plan_frame
-from .frame import LitFrame
+from .frame import LitFrame, resolve_pixels
 from .lighting import RotatedLightBasis
 from ..geometry.meshscene import MeshScene
 from ..geometry.rigid import apply
@@ -46,7 +48,8 @@ class RenderStats:
     texels: int = 0
     fields_loaded: list = field(default_factory=list)
     fallback_samples: int = 0
-    unseen_samples: int = 0
+    unseen_samples: int = 0     # hit samples no field covers (their colour: the nearest covered pixel's)
+    filled_pixels: int = 0      # pixels with hits but no covered sample, filled that way (frame.resolve_pixels)
     lights_skipped: int = 0
     cached: bool = False
     #: renders the model cannot answer (view far outside the capture cameras, a collapsed target, parts
@@ -360,15 +363,10 @@ class Renderer:
         stats.unseen_samples += int((~covered).sum())
 
         t0 = time.perf_counter()
-        h, w = camera.height, camera.width
-        rgba = np.zeros((h * w, 4))
-        pix = idx // spp
-        for ch in range(3):
-            rgba[:, ch] = np.bincount(pix, weights=np.where(covered, colour[:, ch], 0.0), minlength=h * w)
-        rgba[:, 3] = np.bincount(pix, weights=covered.astype(np.float64), minlength=h * w)
-        rgba /= spp
+        # alpha from the target geometry's hits; hits no field covers take the nearest covered colour
+        out, filled = resolve_pixels(idx // spp, colour, covered, camera.height, camera.width, spp)
+        stats.filled_pixels += filled
         stats.add_time("resolve", time.perf_counter() - t0)
-        out = rgba.reshape(h, w, 4).astype(np.float32)
         if not np.isfinite(out).all():
             raise FloatingPointError("render produced NaN/Inf pixels")
         if key is not None:

@@ -1,0 +1,115 @@
+"""The render's alpha is the target geometry's anti-aliased pixel coverage (issue 16 item 2), checked
+against the exact coverage of a convex mesh's outline, and the colour of hits no field covers comes from
+the nearest covered pixel (:func:`mifacerf.rendering.frame.resolve_pixels`)."""
+import numpy as np
+import pytest
+
+from helpers.toy import make_toy
+
+
+@pytest.fixture(scope="module")
+def toy_model(tmp_path_factory, mi):
+    from mifacerf.rendering.build import build_model
+    from mifacerf.rendering.model import Model
+
+    root = tmp_path_factory.mktemp("toy_silhouette")
+    cap = make_toy(root, names=("neutral", "stretch"), size=32, n_pos=6, n_str=5, truth_registration=True).capture
+    build_model(cap, root / "model")
+    return Model(root / "model")
+
+
+def _clip(poly, axis, value, keep_below):
+    """Sutherland–Hodgman: the part of convex polygon ``poly`` (K, 2) on one side of x[axis] = value."""
+    out = []
+    for k in range(len(poly)):
+        p, q = poly[k], poly[(k + 1) % len(poly)]
+        pin = p[axis] <= value if keep_below else p[axis] >= value
+        qin = q[axis] <= value if keep_below else q[axis] >= value
+        if pin:
+            out.append(p)
+        if pin != qin:
+            t = (value - p[axis]) / (q[axis] - p[axis])
+            out.append(p + t * (q - p))
+    return np.array(out).reshape(-1, 2)
+
+
+def _area(poly):
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def exact_coverage(outline, height, width):
+    """(H, W) area of convex polygon ``outline`` (pixel coordinates) inside each pixel's square
+    ``[j-0.5, j+0.5] x [i-0.5, i+0.5]``."""
+    cov = np.zeros((height, width))
+    lo = np.floor(outline.min(axis=0) - 0.5).astype(int)
+    hi = np.ceil(outline.max(axis=0) + 0.5).astype(int)
+    for i in range(max(lo[1], 0), min(hi[1] + 1, height)):
+        for j in range(max(lo[0], 0), min(hi[0] + 1, width)):
+            p = outline
+            for axis, value, below in ((0, j - 0.5, False), (0, j + 0.5, True), (1, i - 0.5, False),
+                                       (1, i + 0.5, True)):
+                p = _clip(p, axis, value, below)
+                if not len(p):
+                    break
+            cov[i, j] = _area(p)
+    return cov
+
+
+def test_alpha_is_the_exact_coverage_of_the_outline(toy_model):
+    """The toy head is a convex mesh (an icosphere on an ellipsoid): its outline in a pinhole camera is
+    the convex hull of its projected vertices, so every pixel's exact coverage is known. Seen from above
+    and behind, much of it is outside every field: the old alpha (field coverage) had holes there."""
+    from scipy.spatial import ConvexHull
+
+    from mifacerf import environment as E
+    from mifacerf.camera import Camera
+    from mifacerf.rendering.renderer import Renderer, RenderStats, RenderWarning
+
+    model = toy_model
+    cam = Camera.look_at("above", [0.25, 0.9, -0.6], [0, 0, 0], width=40, height=40, focal=150.0)
+    W = np.zeros((model.n_vertices, len(model.expressions)))
+    W[:, model.expression_index("neutral")] = 1.0
+    stats = RenderStats()
+    with pytest.warns(RenderWarning, match="from the nearest capture camera"):  # 111 deg: beyond the fields
+        img = Renderer(model).render(model.vertices[0], W, cam, E.generated("sky", 32), spp=64, stats=stats)
+    uv, z = cam.project(model.vertices[0])
+    assert (z > 0).all()
+    outline = uv[ConvexHull(uv).vertices]
+    exact = exact_coverage(outline, cam.height, cam.width)
+    alpha = img[..., 3].astype(np.float64)
+    edge = (exact > 1e-6) & (exact < 1 - 1e-6)
+    assert edge.sum() > 40
+    err = np.abs(alpha - exact)
+    # 64 jittered stratified samples: a straight edge crosses about 8 of the 8 x 8 strata
+    assert err[edge].mean() < 0.03, err[edge].mean()
+    assert err[edge].max() < 0.1, err[edge].max()
+    assert err[exact == 0].max() == 0 and err[exact >= 1 - 1e-9].max() == 0
+    # parts of the head no field covers are hit and filled, not holes
+    assert stats.unseen_samples > 0 and stats.filled_pixels > 0
+    fg = alpha > 0
+    assert (img[..., :3][fg].sum(axis=-1) > 0).all()
+    np.testing.assert_allclose(img[..., 3].sum(), exact.sum(), rtol=0.01)
+
+
+def test_resolve_pixels_fills_from_the_nearest_covered_pixel():
+    from mifacerf.rendering.frame import resolve_pixels
+
+    # a 1 x 4 frame, 2 samples per pixel: pixel 0 both covered, pixel 1 one covered and one hit without
+    # coverage, pixel 2 hit without coverage (nearest covered pixel: 1), pixel 3 missed
+    pix = np.array([0, 0, 1, 1, 2])
+    colour = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 4], [9, 9, 9], [9, 9, 9]], np.float64)
+    covered = np.array([True, True, True, False, False])
+    img, filled = resolve_pixels(pix, colour, covered, 1, 4, 2)
+    np.testing.assert_allclose(img[0, :, 3], [1, 1, 0.5, 0])
+    np.testing.assert_allclose(img[0, 0, :3], [0.5, 0.5, 0])          # exactly the box filter of its samples
+    np.testing.assert_allclose(img[0, 1, :3], [0, 0, 4])              # the uncovered sample takes the pixel's mean
+    np.testing.assert_allclose(img[0, 2, :3], [0, 0, 2])              # pixel 1's colour, alpha 0.5
+    np.testing.assert_array_equal(img[0, 3], 0)
+    assert filled == 1
+    # nothing covered anywhere: the hits keep their alpha, black
+    img, filled = resolve_pixels(pix, colour, np.zeros(5, bool), 1, 4, 2)
+    np.testing.assert_allclose(img[0, :, 3], [1, 1, 0.5, 0])
+    assert img[..., :3].max() == 0 and filled == 0
