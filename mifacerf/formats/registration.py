@@ -241,6 +241,35 @@ class Registration:
         self._verified.add(rel)
         return True
 
+    def check_template(self, names, arrays) -> dict:
+        """The template's arrays (``arrays(template)``, e.g. :func:`mifacerf.rendering.build.template_arrays`),
+        checked to be the one expressions ``names`` were registered on: ``template.json`` listed in the
+        manifest (its checksum was verified at open), triangles indexing its vertices, and every expression
+        with as many vertices as the template and one projection per capture camera. Otherwise
+        :class:`RegistrationError` naming the file."""
+        tpath = self.root / "template.json"
+        if self.files is not None and "template.json" not in self.files:
+            raise RegistrationError(f"{tpath}: not in the registration's manifest ({MARKER} 'files'): it was "
+                                    "changed after registering; register again (mifacerf register --force)")
+        try:
+            t = arrays(self.template)
+            n, tri = int(t["n_vertices"]), np.asarray(t["triangles"])
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise RegistrationError(f"{tpath}: not a usable template ({type(exc).__name__}: {exc})") from exc
+        if tri.ndim != 2 or tri.shape[1:] != (3,) or not len(tri) or tri.min() < 0 or tri.max() >= n:
+            raise RegistrationError(f"{tpath}: triangles of shape {tri.shape} do not index its {n} vertices")
+        for name in names:
+            r = self.expression(name)
+            where = self.root / expression_rel(name)
+            if len(r.vertices) != n:
+                raise RegistrationError(f"{where}: {len(r.vertices)} vertices, but the registration's template "
+                                        f"{tpath} has {n}: not registered on this template; register again "
+                                        "(mifacerf register --force)")
+            if len(r.uv) != len(self.capture.camera_names):
+                raise RegistrationError(f"{where}: projections into {len(r.uv)} cameras, the capture has "
+                                        f"{len(self.capture.camera_names)}")
+        return t
+
     def verify(self) -> list[str]:
         """Every problem found by checking each listed file's size and checksum (empty: all verify)."""
         if self.files is None:

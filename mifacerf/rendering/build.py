@@ -66,7 +66,7 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
                                 "alone with --allow-partial")
     cams = [cap.rig.camera(c) for c in (cameras or cap.camera_names)]
     cam_idx = [cap.camera_names.index(c.name) for c in cams]
-    t = template_arrays(reg.template)
+    t = reg.check_template(names, template_arrays)     # the template the registration was made on
     neutral = names[0] if "neutral" not in names else "neutral"
     writer = ModelWriter(out, cap.rig.lights.directions, cap.rig.lights.solid_angles, cams,
                          [(n, cap.expressions[cap.expression_index(n)].category) for n in names],

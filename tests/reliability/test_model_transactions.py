@@ -189,3 +189,54 @@ def test_existing_model_needs_overwrite(built):
     with pytest.raises(ModelError, match="already holds a model"):
         build(cap, model)
     assert snapshot(model) == old
+
+
+def _edit_template(reg, edit):
+    """Apply ``edit(template)`` to REG/template.json and record its new checksum in the manifest (the folder
+    verifies: only build's consistency check can tell)."""
+    from mifacerf.formats.files import file_entry
+
+    tpath = reg / "template.json"
+    tpl = json.loads(tpath.read_text())
+    edit(tpl)
+    tpath.write_text(json.dumps(tpl))
+    meta = json.loads((reg / "registration.json").read_text())
+    meta["files"]["template.json"] = file_entry(tpath)
+    (reg / "registration.json").write_text(json.dumps(meta))
+
+
+def _unlist(reg):
+    meta = json.loads((reg / "registration.json").read_text())
+    del meta["files"]["template.json"]
+    (reg / "registration.json").write_text(json.dumps(meta))
+
+
+@pytest.mark.parametrize("case, message", [
+    ("extra_vertex", r"expressions/neutral.npz: 162 vertices, but the registration's template \S*template.json "
+                     r"has 163"),
+    ("triangle_out_of_range", r"template.json: triangles of shape \(320, 3\) do not index its 162 vertices"),
+    ("no_triangles", r"template.json: not a usable template \(KeyError"),
+    ("unlisted", r"template.json: not in the registration's manifest"),
+], ids=["extra_vertex", "triangle_out_of_range", "no_triangles", "unlisted"])
+def test_build_refuses_a_template_inconsistent_with_the_registration(toy_truth, capture_copy, tmp_path, case,
+                                                                   message):
+    """Item 4: build checks the registration's template against what was registered on it (vertex count,
+    triangles, listed with its checksum); before, a template with another vertex count crashed or built."""
+    from mifacerf.cli import main
+
+    cap = capture_copy(toy_truth)
+    reg = cap / "registration"
+    if case == "extra_vertex":
+        _edit_template(reg, lambda t: t.update(kinds=t["kinds"] + ["dot"]))
+    elif case == "triangle_out_of_range":
+        _edit_template(reg, lambda t: t["triangles"][5].__setitem__(1, 162))
+    elif case == "no_triangles":
+        _edit_template(reg, lambda t: t.pop("triangles"))
+    else:
+        _unlist(reg)
+    with pytest.raises(RegistrationError, match=message):
+        build(cap, tmp_path / "m")
+    assert not (tmp_path / "m").exists() and siblings(tmp_path / "m") == []
+    res = CliRunner().invoke(main, ["build", str(cap), "-o", str(tmp_path / "m")])
+    assert res.exit_code == 1 and "Traceback" not in res.output
+    assert len([ln for ln in res.stderr.splitlines() if ln.startswith("mifacerf build: error: ")]) == 1, res.stderr
