@@ -21,10 +21,13 @@ Layout (docs/tracking.md)::
      "subject": {...}, "dot_radius": 0.0015}
 
 Version 2 adds ``"checksums": {"frames/<camera>/F<frame>.exr": sha256}`` of every frame
-(written with the manifest, last). :meth:`PerformanceFolder.read` does not check them:
-tracking treats a frame it cannot decode as dropped and reports it, as it must for a
-camera's own faults; :meth:`PerformanceFolder.verify` (``mifacerf verify PERF``) tells
-later damage (a checksum mismatch, naming the file) from what the cameras recorded. Every key
+(written with the manifest, last) and ``"sizes"`` (bytes per frame; absent in folders written
+before it). What a frame held when it was recorded — a camera's own faults included: a garbled
+file, a dark or duplicated image — is what the checksum certifies, and tracking treats a frame it
+cannot decode as dropped and reports it. Later damage is an error naming the file: opening checks
+the size of every recorded frame present (one ``stat`` each; a frame missing is a dropped one),
+:meth:`PerformanceFolder.read` checksums a frame the first time it reads it (once per process),
+and :meth:`PerformanceFolder.verify` (``mifacerf verify PERF``) checks every frame. Every key
 above but ``lighting``, ``starts_at_rest``, ``subject`` and ``dot_radius`` is required.
 Recording is resumable: frames already on disk are kept, but only when the recording's
 settings (cameras, fps, frame count, extras) are those the folder was started with
@@ -82,6 +85,16 @@ class PerformanceFolder:
         if len(self.cameras) < 2:
             raise PerformanceError(f"{path}: tracking needs at least two cameras")
         self.pattern = self.meta["frame_pattern"]
+        self._verified: set[str] = set()
+        sizes = self.meta.get("sizes") if self.checksums is not None else None
+        for rel, size in (sizes or {}).items():
+            try:
+                now = (self.root / rel).stat().st_size
+            except FileNotFoundError:
+                continue                  # a dropped frame (verify reports it)
+            if now != size:
+                raise PerformanceError(f"{self.root / rel}: {now} bytes, the manifest says {size} (the file "
+                                       "changed after the recording or is truncated)")
 
     @property
     def camera_names(self) -> list[str]:
@@ -94,10 +107,23 @@ class PerformanceFolder:
         """The (H, W, 3) image of ``camera`` at ``frame``, or None when the file is missing or unreadable."""
         cam = self.cameras[self.camera_names.index(camera)]
         path = self.frame_path(camera, frame)
+        if self.checksums is not None and path.exists():
+            self.check_frame(path)
         try:
             return read_exr(path, channels=3, expect_shape=(cam.height, cam.width))
         except ImageFileError:
             return None
+
+    def check_frame(self, path: Path) -> None:
+        """Checksum a frame against the manifest, once per process and file (no-op for version 1):
+        :class:`PerformanceError` naming it when it changed or was added after the recording."""
+        if self.checksums is None:
+            return
+        rel = Path(path).relative_to(self.root).as_posix()
+        if rel in self._verified:
+            return
+        self._check(Path(path))
+        self._verified.add(rel)
 
     def _check(self, path: Path) -> None:
         rel = path.relative_to(self.root).as_posix()
@@ -105,7 +131,8 @@ class PerformanceFolder:
         if want is None:
             raise PerformanceError(f"{path}: not in the manifest's checksums (a frame added after the recording)")
         if sha256_file(path) != want:
-            raise PerformanceError(f"{path}: checksum mismatch (the file changed or is corrupt)")
+            raise PerformanceError(f"{path}: checksum mismatch (the file changed after the recording or is "
+                                   "corrupt; restore it, or delete it to track without it, as a dropped frame)")
 
     def verify(self) -> list[str]:
         """Every problem found by checking each recorded frame's checksum (empty: all verify)."""
@@ -158,7 +185,7 @@ class PerformanceWriter:
             before = read_json(stamp, PerformanceError, "missing")
         elif (self.root / "manifest.json").exists():     # a complete recording of an earlier version
             before = {k: v for k, v in read_json(self.root / "manifest.json", PerformanceError, "missing").items()
-                      if k != "checksums"}
+                      if k not in ("checksums", "sizes")}
             before.update(version=VERSION, template_content=read_json(self.root / "hand" / "template.json",
                                                                       PerformanceError, "missing"))
         elif any((self.root / "frames").rglob("*.exr")):
@@ -197,5 +224,6 @@ class PerformanceWriter:
         """Checksum every frame on disk and write the manifest (the completion marker), last."""
         frames = sorted(p for c in self.cameras for p in (self.root / "frames" / c.name).glob("F*.exr"))
         self.meta["checksums"] = {p.relative_to(self.root).as_posix(): sha256_file(p) for p in frames}
+        self.meta["sizes"] = {p.relative_to(self.root).as_posix(): p.stat().st_size for p in frames}
         write_json_atomic(self.root / "manifest.json", self.meta)
         return self.root

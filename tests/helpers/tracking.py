@@ -50,6 +50,22 @@ def copy_performance(perf: Path, dest: Path) -> Path:
     return dest
 
 
+def as_recorded(perf: Path) -> Path:
+    """The manifest's frame checksums and sizes made again from the frames on disk: the faults a test put
+    into the frames (dropped, garbled, dark, painted-out dots) become the cameras' own, as recorded, and
+    not later damage (which reading a frame reports as a checksum error)."""
+    import json
+
+    from mifacerf.formats.files import sha256_file, write_json_atomic
+
+    meta = json.loads((perf / "manifest.json").read_text())
+    frames = sorted(p for p in (perf / "frames").rglob("F*.exr"))
+    meta["checksums"] = {p.relative_to(perf).as_posix(): sha256_file(p) for p in frames}
+    meta["sizes"] = {p.relative_to(perf).as_posix(): p.stat().st_size for p in frames}
+    write_json_atomic(perf / "manifest.json", meta)
+    return perf
+
+
 def paint_out_dot(perf: Path, camera, frame: int, uv: np.ndarray, radius: float = 2.2) -> None:
     """Cover a dot in one image with the skin around it (a dot that fell off / is smeared)."""
     from mifacerf.imageio import read_exr, write_exr

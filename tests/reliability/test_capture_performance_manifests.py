@@ -89,3 +89,32 @@ def test_a_recording_with_other_settings_is_not_mixed_in(tmp_path):
     assert {p: p.read_bytes() for p in perf.rglob("*.exr")} == before
     _perf(perf, n=3, seed=1)                           # the same settings resume: frames kept as they are
     assert {p: p.read_bytes() for p in perf.rglob("*.exr")} == before
+
+
+def test_performance_frames_are_checked_when_read(tmp_path):
+    """Item 3: a frame damaged after the recording is found when it is read (tracking reads every frame
+    through PerformanceFolder.read), not only by 'mifacerf verify': the size of each frame at open, its
+    checksum at first read; a mismatch names the file. A frame missing is a dropped one (None)."""
+    perf = _perf(tmp_path / "perf")
+    assert set(json.loads((perf / "manifest.json").read_text())["sizes"]) == set(PerformanceFolder(perf).checksums)
+    flipped = perf / "frames" / "cam1" / "F00001.exr"
+    data = bytearray(flipped.read_bytes())
+    data[len(data) // 2] ^= 0x10                       # same size: opening stays cheap and passes
+    flipped.write_bytes(bytes(data))
+    pf = PerformanceFolder(perf)
+    assert pf.read("cam0", 1).shape == (5, 6, 3)
+    with pytest.raises(PerformanceError, match=r"cam1/F00001.exr: checksum mismatch"):
+        pf.read("cam1", 1)
+    truncated = perf / "frames" / "cam0" / "F00002.exr"
+    truncated.write_bytes(truncated.read_bytes()[:-7])
+    with pytest.raises(PerformanceError, match=r"cam0/F00002.exr: \d+ bytes, the manifest says \d+"):
+        PerformanceFolder(perf)
+    truncated.unlink()                                  # deleted: a dropped frame, reported by verify
+    flipped.unlink()
+    pf = PerformanceFolder(perf)
+    assert pf.read("cam0", 2) is None and pf.read("cam1", 1) is None
+    assert any("F00002.exr: missing" in p for p in pf.verify())
+    extra = perf / "frames" / "cam0" / "F00007.exr"     # a frame added after the recording
+    extra.write_bytes((perf / "frames" / "cam0" / "F00000.exr").read_bytes())
+    with pytest.raises(PerformanceError, match=r"F00007.exr: not in the manifest's checksums"):
+        pf.read("cam0", 7)

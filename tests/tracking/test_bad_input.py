@@ -7,7 +7,7 @@ import shutil
 import numpy as np
 import pytest
 
-from helpers.tracking import copy_performance, paint_out_dot
+from helpers.tracking import as_recorded, copy_performance, paint_out_dot
 
 # every test here needs the tracking world (tests/tracking/conftest.py), a fixture of more than 20 s
 pytestmark = pytest.mark.slow
@@ -23,6 +23,7 @@ def _model(world):
 def _track(perf, out):
     from mifacerf.tracking.track import Track, track_performance
 
+    as_recorded(perf)          # the damage made here is the cameras' (recorded so), not later bit rot
     return Track(track_performance(perf, out, model=MODEL["path"], progress=False))
 
 
