@@ -24,19 +24,26 @@ def aligned(array, dtype, alignment: int = 64) -> np.ndarray:
 def to_jit(jit_type, array):
     """``jit_type`` (e.g. ``mi.Float``, ``mi.UInt32``, ``mi.Vector3f``) from a NumPy array, via an aligned copy.
 
-    Vector types take a (3, N) array (rows = components).
+    Vector types take a (3, N) array (rows = components). Each component is uploaded on its own: a
+    vector built from one 2-D array gathers its rows from a flat buffer at offsets N and 2N, literals
+    baked into the kernel, so every new N (the samples of a frame) compiled new kernels.
     """
     import drjit as dr
 
     dtype = {dr.VarType.Float32: np.float32, dr.VarType.Float16: np.float16, dr.VarType.Float64: np.float64,
              dr.VarType.UInt32: np.uint32, dr.VarType.Int32: np.int32, dr.VarType.Bool: np.bool_,
              dr.VarType.UInt64: np.uint64, dr.VarType.Int64: np.int64}[dr.type_v(jit_type)]
-    return jit_type(aligned(array, dtype))
+    a = np.asarray(array)
+    if dr.depth_v(jit_type) > 1 and a.ndim == 2:
+        component = dr.value_t(jit_type)
+        return jit_type(*[component(aligned(row, dtype)) for row in a])
+    return jit_type(aligned(a, dtype))
 
 
 def from_jit(vec) -> np.ndarray:
     """A Dr.Jit array → NumPy; vector types (Color3f, Vector3f, …) of width N become (N, components)."""
     import drjit as dr
 
-    arr = np.asarray(vec)
-    return arr.T.copy() if dr.depth_v(vec) > 1 else arr
+    if dr.depth_v(vec) > 1:   # component by component: np.asarray(vec) scatters rows at literal offsets N, 2N
+        return np.stack([np.asarray(vec[i]) for i in range(len(vec))], axis=1)
+    return np.asarray(vec)
