@@ -52,7 +52,8 @@ def evaluate_group():
 @click.option("-n", "n", type=click.IntRange(min=1), default=2, show_default=True, help="Cases per kind (a, b, c, d).")
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Default: a fresh seed from the clock (recorded).")
 @click.option("--spp-truth", type=click.IntRange(min=1), default=1024, show_default=True)
-def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
+@click.option("--size", type=click.IntRange(min=1), default=None, help="Frame size in pixels (default: the cameras' own).")
+def render_cmd(synth_out, model, out, envs, n, seed, spp_truth, size):
     """Rendering accuracy of MODEL against path-traced ground truth: captured, blends, novel views, out-of-set."""
     import time
 
@@ -61,7 +62,7 @@ def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
     seed = int(time.time()) if seed is None else seed
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth,
+    report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth, size=size,
                       pictures=out / "cases.png")
     (out / "report.json").write_text(json.dumps(report, indent=1))
     for e in report["cases"]:
@@ -76,6 +77,9 @@ def render_cmd(synth_out, model, out, envs, n, seed, spp_truth):
                    f"IoU {mean('silhouette_iou'):.4f} (min {v['silhouette_iou'].get('min', 0):.4f}), "
                    f"uncovered {100 * mean('uncovered'):.2f} % (max {100 * v['uncovered'].get('max', 0):.2f} %), "
                    f"{mean('seconds'):.2f} s/frame")
+        if "error_share" in v:
+            click.echo("        composite error: " + ", ".join(
+                f"{r} {100 * s.get('mean', 0):.0f} %" for r, s in v["error_share"].items()))
     click.echo(f"truth noise floor: {report['truth_noise_psnr']:.1f} dB (lowest case); report: {out / 'report.json'}")
 
 

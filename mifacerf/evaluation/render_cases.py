@@ -15,9 +15,11 @@ Cases, drawn with a fresh seed (never the ones used while developing):
 PSNR on the face mask (:mod:`.masks`, kept for continuity: it scores only pixels the model fully
 covers), and what the user sees: **composite PSNR** (render and truth each over the same plate,
 the environment seen from the camera, on every pixel where either has coverage, so missing or
-extra coverage is error), **silhouette IoU** (the render's alpha against the truth's) and the
+extra coverage is error), **silhouette IoU** (the render's alpha against the truth's), the
 **uncovered** share of the truth's foreground (with a picture of where: red = missed, blue =
-extra); per environment; time per frame with a warm model
+extra) and **where the composite error sits** (:func:`.metrics.error_regions`: the face mask, the
+extensions — the truth's foreground outside it —, the silhouette band, extra coverage); per
+environment; time per frame with a warm model
 and its breakdown by stage. Every truth is path-traced as two halves of ``spp_truth``
 with different seeds (:func:`.metrics.psnr_two_truths`): each case reports its truth's own
 Monte Carlo noise floor and, beside the plain PSNR against the truth, the PSNR with
@@ -34,7 +36,8 @@ import numpy as np
 from ..camera import ring_camera
 from ..rendering.renderer import RenderStats
 from .masks import classify_pixels, face_mask, triangle_mask
-from .metrics import composite_psnr, coverage_picture, psnr, psnr_two_truths, silhouette_iou, summary, uncovered
+from .metrics import (REGIONS, composite_psnr, coverage_picture, error_regions, over, psnr, psnr_two_truths,
+                      silhouette_iou, summary, uncovered)
 
 
 @dataclass
@@ -105,7 +108,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
              pictures: Path | None = None) -> dict:
     """Run every case under every environment (``progress``: a bar over them); returns a JSON-able report."""
     from ..imageio import write_png
-    from ..pictures import error_map, grid, label, tile8
+    from ..pictures import grid
     from ..progress import bar
     from ..rendering.api import environment_plate, load_model
     from ..synthetic.truth_scene import TruthRenderer
@@ -124,7 +127,8 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
         truth = 0.5 * (halves[0] + halves[1])
         sc = tr.scene(face.environment(env))
         classes = classify_pixels(sc, cam, spp=4)
-        mask = face_mask(classes) & (truth[..., 3] > 0.999)
+        modelled = face_mask(classes)
+        mask = modelled & (truth[..., 3] > 0.999)
         stats = RenderStats()
         face.renderer.cache_frames = False   # time a real render, not the unchanged-frame cache
         face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=spp)  # warm (kernels, fields)
@@ -141,7 +145,8 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
         plate = environment_plate(face.environment(env), cam)
         share, _ = uncovered(img[..., 3], truth[..., 3])
         entry.update({"psnr_composite": composite_psnr(img, truth, plate),
-                      "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share})
+                      "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share,
+                      "regions": error_regions(img, truth, plate, modelled)})
         if case.kind == "d":
             wr = triangle_mask(classes, wrinkle_triangles(tr.subject, case.params)) & m
             neutral = _neutral_render(face, case, cam, env, spp)
@@ -153,10 +158,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
         report["cases"].append(entry)
         if pictures is not None and len(tiles) < 24 * 4:
             t = 192
-            tiles += [label(tile8(truth, size=t), f"truth {case.label[:28]}"), label(tile8(img, size=t), f"render {env}"),
-                      label(tile8(error_map(img, truth, 0.05, m), size=t), f"|error| {entry['psnr']:.1f} dB"),
-                      label(tile8(coverage_picture(img[..., 3], truth[..., 3]), size=t),
-                            f"IoU {entry['silhouette_iou']:.3f} miss {100 * share:.1f}%")]
+            tiles += case_tiles(img, truth, plate, entry, t)
     by = {}
     for e in report["cases"]:
         by.setdefault(e["case"], []).append(e)
@@ -165,6 +167,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
                              "psnr_composite": summary([x["psnr_composite"] for x in v]),
                              "silhouette_iou": summary([x["silhouette_iou"] for x in v]),
                              "uncovered": summary([x["uncovered"] for x in v]),
+                             "error_share": {r: summary([x["regions"][r]["error_share"] for x in v]) for r in REGIONS},
                              "seconds": summary([x["seconds"] for x in v]),
                              **({"psnr_wrinkles": summary([x.get("psnr_wrinkles", np.nan) for x in v]),
                                  "psnr_wrinkles_neutral_only": summary([x.get("psnr_wrinkles_neutral_only", np.nan)
@@ -177,9 +180,92 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
     return report
 
 
+def case_tiles(img, truth, plate, entry: dict, size: int = 192) -> list:
+    """One case's row of ``cases.png``: truth and render each over the plate (what the user sees), the
+    composite's |error| on the scored pixels, and the coverage (grey both, red missed, blue extra)."""
+    from ..pictures import error_map, label, tile8
+
+    comp_t, comp_r = over(truth, plate), over(img, plate)
+    scored = (img[..., 3] > 1e-3) | (truth[..., 3] > 1e-3)
+    return [label(tile8(comp_t, size=size), f"truth {entry['label'][:28]}"),
+            label(tile8(comp_r, size=size), f"render {entry['env']}"),
+            label(tile8(error_map(comp_r, comp_t, 0.05, scored), size=size),
+                  f"|error| {entry['psnr_composite']:.1f} dB (face {entry['psnr']:.1f})"),
+            label(tile8(coverage_picture(img[..., 3], truth[..., 3]), size=size),
+                  f"IoU {entry['silhouette_iou']:.3f}, red miss {100 * entry['uncovered']:.1f}%")]
+
+
 def _neutral_render(face, case, cam, env, spp):
     """The target mesh rendered from the neutral expression's reflectance fields only (the baseline)."""
     target, _ = face.target(mesh=case.mesh)
     W = np.zeros((face.model.n_vertices, len(face.model.expressions)))
     W[:, face.model.expression_index(face.model.neutral)] = 1.0
     return face.renderer.render(target, W, cam, face.environment(env), spp=spp, parts=face.parts(mesh=case.mesh))
+
+
+def view_angle(camera, cameras, centre) -> float:
+    """Degrees between ``camera``'s direction from ``centre`` and the nearest of ``cameras``'."""
+    d = camera.centre - centre
+    dirs = np.array([c.centre - centre for c in cameras], np.float64)
+    cos = dirs @ d / (np.linalg.norm(dirs, axis=1) * np.linalg.norm(d))
+    return float(np.degrees(np.arccos(np.clip(cos.max(), -1.0, 1.0))))
+
+
+def camera_off_the_rig(cameras, degrees: float = 30.0, side: float = 1.0):
+    """A ring camera (:func:`mifacerf.camera.ring_camera`) ``degrees`` from the nearest capture camera,
+    beyond the outermost one on the ``side`` (+1: +X, towards positive yaw; -1: the other) at that
+    camera's pitch: found by bisection on the yaw."""
+    from ..camera import cameras_focus
+
+    centre = cameras_focus(cameras)
+    d = np.array([c.centre - centre for c in cameras])
+    yaws = np.degrees(np.arctan2(d[:, 0], d[:, 2]))
+    k = int(np.argmax(side * yaws))
+    pitch = float(np.degrees(np.arcsin(d[k, 1] / np.linalg.norm(d[k]))))
+    lo, hi = float(yaws[k]), float(yaws[k]) + side * 90.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if view_angle(ring_camera(cameras, mid, pitch), cameras, centre) < degrees:
+            lo = mid
+        else:
+            hi = mid
+    yaw = 0.5 * (lo + hi)
+    return ring_camera(cameras, yaw, pitch, name=f"yaw{yaw:+.1f}_pitch{pitch:+.1f}")
+
+
+def novel_view_picture(out, model_path, picture, degrees: float = 30.0, expression: str | None = None,
+                       env: str = "sky", spp_truth: int = 256, spp: int = 4, size: int = 256, seed: int = 0) -> dict:
+    """truth | render | |error|, each over the environment's plate, for a view ``degrees`` off the nearest
+    capture camera (:func:`camera_off_the_rig`) of a captured ``expression`` (default: the neutral); the
+    error is shown on every pixel where either has coverage. Writes ``picture`` (PNG); returns the view and
+    the numbers of a case (composite and face PSNR, IoU, uncovered, where the error sits)."""
+    from ..imageio import write_png
+    from ..pictures import error_map, grid, label, tile8
+    from ..rendering.api import environment_plate, load_model
+    from ..synthetic.truth_scene import TruthRenderer
+
+    tr = TruthRenderer.from_synth(out)
+    face = load_model(model_path)
+    expression = expression or face.model.neutral
+    cam = camera_off_the_rig(face.model.cameras, degrees).resized(size, size)
+    params = tr.expressions[expression]
+    halves = [tr.render(params, cam, env, spp=max(1, spp_truth // 2), seed=seed + k) for k in (0, 1)]
+    truth = 0.5 * (halves[0] + halves[1])
+    img = face.render(expression, camera=cam, env=env, spp=spp)
+    plate = environment_plate(face.environment(env), cam)
+    modelled = face_mask(classify_pixels(tr.scene(face.environment(env)), cam, spp=4))
+    m = modelled & (truth[..., 3] > 0.999) & (img[..., 3] > 0.999)
+    share, _ = uncovered(img[..., 3], truth[..., 3])
+    res = {"camera": cam.name, "degrees": degrees, "expression": expression, "env": env,
+           "psnr": psnr(img, truth, m), "psnr_composite": composite_psnr(img, truth, plate),
+           "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share,
+           "regions": error_regions(img, truth, plate, modelled)}
+    comp_t, comp_r = over(truth, plate), over(img, plate)
+    scored = (img[..., 3] > 1e-3) | (truth[..., 3] > 1e-3)
+    tiles = [label(tile8(comp_t), f"truth {expression}, {degrees:.0f} deg off the rig"),
+             label(tile8(comp_r), f"render {env}"),
+             label(tile8(error_map(comp_r, comp_t, 0.05, scored)),
+                   f"|error| {res['psnr_composite']:.1f} dB, IoU {res['silhouette_iou']:.3f}")]
+    Path(picture).parent.mkdir(parents=True, exist_ok=True)
+    write_png(picture, grid(tiles, 3))
+    return res

@@ -96,3 +96,49 @@ def test_coverage_picture_labels_missed_and_extra():
     assert tuple(pic[0, 1]) == (1.0, 0.0, 0.0)        # truth only: missed, red
     assert pic[1, 0, 2] == 1.0 and pic[1, 0, 0] == 0  # model only: extra, blue
     assert pic[1, 1].sum() == 0
+
+
+def test_error_regions_split_the_composite_error_exactly():
+    """A truth disc whose inner half is the face and outer ring an extension; the render covers the face
+    exactly, misses the ring's right strip and adds a patch outside: the shares are closed form."""
+    from scipy.ndimage import binary_dilation
+
+    from mifacerf.evaluation.metrics import REGIONS, error_regions, region_map
+
+    n = 64
+    disc, face = _disc(n, 24.0), _disc(n, 12.0)
+    plate = np.full((n, n, 3), 0.2)
+    truth = np.zeros((n, n, 4))
+    truth[disc] = (0.8, 0.8, 0.8, 1.0)
+    img = truth.copy()
+    img[face, :3] = 0.7                               # face error 0.1 per channel
+    miss = disc & ~face
+    miss[:, :44] = False                              # the right part of the ring missed: plate (0.2) shows
+    img[miss] = 0.0
+    extra = np.zeros((n, n), bool)
+    extra[2:6, 2:6] = True                            # far from the disc
+    img[extra] = (0.5, 0.5, 0.5, 1.0)
+    labels = region_map(img[..., 3], truth[..., 3], face)
+    # silhouette: both sides of each outline (the truth's circle, the render's cut and the patch's edge)
+    edge = np.zeros((n, n), bool)
+    for fg in (disc, disc & ~miss | extra, extra):
+        edge |= (binary_dilation(fg) & ~fg) | (binary_dilation(~fg) & fg)
+    edge &= disc | extra                              # scored: where either has coverage
+    assert np.array_equal(labels == 3, edge)
+    assert np.array_equal(labels == 1, face & ~edge)
+    assert np.array_equal(labels == 2, disc & ~face & ~edge)
+    assert np.array_equal(labels == 4, extra & ~edge)
+    assert (labels[~(disc | extra | edge)] == 0).all()
+    r = error_regions(img, truth, plate, face)
+    assert list(r) == list(REGIONS)
+    se = np.zeros((n, n))
+    se[face] = 3 * 0.1 ** 2
+    se[miss] = 3 * 0.6 ** 2
+    se[extra] = 3 * 0.3 ** 2
+    total = se.sum()
+    for k, name in enumerate(REGIONS, start=1):
+        assert r[name]["pixels"] == int((labels == k).sum())
+        assert r[name]["error_share"] == pytest.approx(se[labels == k].sum() / total)
+    assert sum(v["error_share"] for v in r.values()) == pytest.approx(1.0)
+    assert r["face"]["psnr_composite"] == pytest.approx(10 * np.log10(0.8 ** 2 / 0.1 ** 2))
+    assert error_regions(truth, truth, plate, face)["face"]["psnr_composite"] == float("inf")
