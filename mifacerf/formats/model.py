@@ -40,7 +40,9 @@ and swaps it in when complete (:func:`.files.swap_in`), holding the folder's loc
 model as it was, and a build interrupted during the swap is finished by the next
 open or build (:func:`.files.repair_swap`). ``--overwrite`` replaces the whole model
 (compressed fields included: they belong to the old fields) only once the new one is
-complete.
+complete. Files added to a finished model (``mifacerf compress``) are a transaction too
+(:func:`update_model`): a hard-linked copy of the folder gets the new files and
+``model.json``, and is swapped in the same way.
 
 This module is the format: :class:`ModelFolder` reads it, :class:`ModelWriter` writes
 it. :class:`mifacerf.rendering.model.Model` is the reader with the rendering-side
@@ -50,6 +52,7 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -400,10 +403,80 @@ class ModelWriter:
         return self.target / MARKER
 
 
+class ModelUpdate:
+    """Files being added to a finished model (:func:`update_model`): write them under :attr:`root` (a
+    hard-linked copy of the model) and :meth:`add` each; :meth:`update` changes ``model.json``."""
+
+    def __init__(self, root: Path, meta: dict):
+        self.root, self.meta, self.written = root, meta, []
+        self._updates = []
+
+    def add(self, path) -> None:
+        self.written.append(Path(path))
+
+    def update(self, fn) -> None:
+        """``fn(meta)`` is applied to ``model.json`` (as it is on disk, under the lock) at the commit."""
+        self._updates.append(fn)
+
+
+def _link_tree(src: Path, dst: Path) -> None:
+    """``dst`` (an empty folder) gets every file of ``src`` as a hard link (a copy where links fail)."""
+    import shutil
+
+    for p in sorted(src.rglob("*")):
+        q = dst / p.relative_to(src)
+        if p.is_dir():
+            q.mkdir(parents=True, exist_ok=True)
+            continue
+        q.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(p, q)
+        except OSError:
+            shutil.copy2(p, q)
+
+
+@contextmanager
+def update_model(model: ModelFolder, what: str = "model update", log=None):
+    """``with update_model(model) as u:`` add files to a finished model as one transaction (compressed
+    fields): under the model's lock, ``u.root`` is a new folder beside the model holding hard links to
+    every file of it; the block writes the new files there (``u.add(path)``; a file replaced is
+    written by rename, so the old model's file is untouched), then ``model.json`` with their sizes and
+    checksums is written and the folder swapped in (:func:`.files.swap_in`). A failure or a kill at any
+    moment leaves the model as it was, or (once swapped) the new files all listed and complete; a model
+    being read keeps its files (the same inodes). ``model`` (``meta``, ``files``) follows the update."""
+    import shutil
+
+    target = Path(model.root)
+    with FolderLock(target, ModelError, what=what, log=log or _stderr):
+        repair_swap(target, MARKER)
+        meta = read_json_manifest(target / MARKER, FORMAT, READS, ModelError, "missing", "mifacerf model")
+        building = new_building_dir(target)
+        try:
+            _link_tree(target, building)
+            u = ModelUpdate(building, meta)
+            yield u
+            for fn in u._updates:
+                fn(meta)
+            if meta.get("files") is not None:
+                for p in u.written:
+                    meta["files"][Path(p).relative_to(building).as_posix()] = file_entry(p)
+            (building / MARKER).unlink()               # (a link to the old one: written anew, not through it)
+            write_json_atomic(building / MARKER, meta)
+            swap_in(target, building, MARKER)
+        except BaseException:
+            shutil.rmtree(building, ignore_errors=True)
+            raise
+    model.meta = meta
+    model.files = meta.get("files")
+    for p in u.written:
+        model._verified.discard(Path(p).relative_to(building).as_posix())
+
+
 def record_files(model: ModelFolder, paths, update=None) -> dict:
-    """Add files written into a finished model (e.g. compressed fields) to its manifest and apply
-    ``update(meta)`` to its ``model.json`` as it is on disk, under the model's lock (no lost update);
-    returns (and sets) ``model.meta``."""
+    """Add files already written into a finished model to its manifest and apply ``update(meta)`` to its
+    ``model.json`` as it is on disk, under the model's lock (no lost update); returns (and sets)
+    ``model.meta``. Not a transaction (a kill between a file's write and this leaves it unlisted, or a
+    listed file rewritten): writers use :func:`update_model`."""
     root = Path(model.root)
     with FolderLock(root, ModelError, what="model update"):
         meta = read_json_manifest(root / MARKER, FORMAT, READS, ModelError, "missing", "mifacerf model")

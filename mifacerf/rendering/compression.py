@@ -2,7 +2,9 @@
 
 The ways a renderer can store and light a field are chosen by name from
 :data:`COMPRESSION_METHODS` (:func:`compression_method`; the pattern of :mod:`mifacerf.methods`):
-``exact`` (the default: the stored field itself, L terms per texel, :mod:`.relight`) and ``pca``.
+``exact`` (the default: the stored field itself, L terms per texel, :mod:`.relight`), ``pca`` (below) and
+``sh`` (spherical harmonics of a chosen order, lit in the SH domain with the per-vertex rotation applied
+band by band: :mod:`.sh_fields`, :mod:`.ivanic1996`).
 Adding one is a :class:`CompressionMethod` (how to compress, load and light a field) plus one
 registry line; ``mifacerf compress --method``, ``Renderer(method=...)``, ``mifacerf bench`` (its
 ``<method><rank>`` configurations) and the demo take it by that name.
@@ -32,9 +34,10 @@ from typing import Callable
 import numpy as np
 
 from ..formats.files import save_npz_atomic
-from ..formats.model import record_files
+from ..formats.model import update_model
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
+from .sh_fields import compress_sh, lighting_sh, lit_sh, load_sh
 
 #: the method :func:`compress_model` and ``mifacerf compress`` write unless told (see :data:`COMPRESSION_METHODS`)
 DEFAULT_COMPRESS_METHOD = "pca"
@@ -91,20 +94,21 @@ def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COM
     ranks = [int(rank)] if np.isscalar(rank) else [int(r) for r in rank]
     jobs = [(s, c) for s in range(len(model.expressions)) for c in range(len(model.cameras)) if model.has_field(s, c)]
     total = {r: 0 for r in ranks}
-    written = []
-    for s, c in bar(jobs, progress, desc=f"compress {method}", unit="field"):
-        f = model.field(s, c)
-        for r, comp in compress(np.asarray(f.rf), ranks).items():
-            path = compressed_path(model.root, f.expression, f.camera, r, method)
-            save_npz_atomic(path, compressed=False, **comp)
-            written.append(path)
-            total[r] += path.stat().st_size
 
     def add_ranks(meta):     # under the model's lock, on model.json as it is on disk
         done = sorted(set(meta.get("compressed", {}).get(method, [])) | set(ranks))
         meta["compressed"] = {**meta.get("compressed", {}), method: done}
 
-    record_files(model, written, add_ranks)
+    # one transaction: the files appear, listed in model.json, all at once (a kill leaves the model as it was)
+    with update_model(model, what="compress") as update:
+        for s, c in bar(jobs, progress, desc=f"compress {method}", unit="field"):
+            f = model.field(s, c)
+            for r, comp in compress(np.asarray(f.rf), ranks, model.light_directions).items():
+                path = compressed_path(update.root, f.expression, f.camera, r, method)
+                save_npz_atomic(path, compressed=False, **comp)
+                update.add(path)
+                total[r] += path.stat().st_size
+        update.update(add_ranks)
     return {"bytes": total if len(ranks) > 1 else total[ranks[0]], "fields": len(jobs)}
 
 
@@ -177,30 +181,40 @@ def _lit_pca(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
     return lit_texels_pca(dev, comp["basis"].shape[0], texels, vertex_ids, coef, m_v, beta_v)
 
 
+def _compress_pca(rf, ranks, light_directions):
+    return compress_field_ranks(rf, ranks)
+
+
 @dataclass(frozen=True)
 class CompressionMethod:
     """One way of storing and lighting a reflectance field (an entry of :data:`COMPRESSION_METHODS`).
 
-    * ``compress(rf (N, L, 3), ranks) -> {rank: {name: array}}``: the arrays written to
-      :func:`compressed_path` by :func:`compress_model`; None for the stored field itself;
+    * ``compress(rf (N, L, 3), ranks, light_directions (L, 3)) -> {rank: {name: array}}``: the arrays
+      written to :func:`compressed_path` by :func:`compress_model`; None for the stored field itself;
     * ``load(model, s, c, rank, lights) -> data``: field (source ``s``, camera ``c``) ready to light
       (device arrays; ``lights`` a light subset or None);
     * ``lit(data, n_lights, texels (N,), vertex_ids (N, 3), coef (N, 3), lighting (V, L, 3), keep) -> (N, 3)``:
       the lit colour of ``texels`` under the per-vertex light-stage weights ``lighting`` (``keep``: the
       lights kept, None for all);
-    * ``light_subsets``: whether ``load`` accepts a light subset.
+    * ``light_subsets``: whether ``load`` accepts a light subset;
+    * ``lighting(renderer, env, rotations (P, 3, 3)) -> (P, K, 3)``: the per-(vertex, source) lighting
+      ``lit`` takes, when it is not the light stage's rotated basis (:mod:`.lighting`, None): ``sh``
+      rotates the environment's coefficients (:mod:`.sh_fields`). Negligible lights are skipped only in
+      the light stage's basis.
     """
 
     compress: Callable | None
     load: Callable
     lit: Callable
     light_subsets: bool = False
+    lighting: Callable | None = None
 
 
 #: how a renderer stores and lights a field: name → :class:`CompressionMethod`; the first is the default
 COMPRESSION_METHODS = {
     "exact": CompressionMethod(None, _load_exact, _lit_exact, light_subsets=True),
-    "pca": CompressionMethod(compress_field_ranks, _load_pca, _lit_pca),
+    "pca": CompressionMethod(_compress_pca, _load_pca, _lit_pca),
+    "sh": CompressionMethod(compress_sh, load_sh, lit_sh, lighting=lighting_sh),
 }
 DEFAULT_COMPRESSION_METHOD = "exact"
 

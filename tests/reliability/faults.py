@@ -1,8 +1,8 @@
 """Fault injection for the reliability tests: folder snapshots, a child process killed with SIGKILL at a
 chosen moment, an injected ENOSPC.
 
-``python tests/reliability/faults.py JOB ARGS_JSON KILL`` runs one job (``build`` or ``register``) in a
-child: KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
+``python tests/reliability/faults.py JOB ARGS_JSON KILL`` runs one job (``build``, ``register``,
+``compress`` or ``demo``, see :mod:`demo_stand_in`) in a child: KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
 ``call:NAME:N[:FILTER]`` (SIGKILL itself just before the N-th call of ``os.NAME`` whose arguments contain
 FILTER, or ``WANTED!UNWANTED``: contain WANTED but not UNWANTED — a precise crash point between two
 renames). The child prints ``ready`` once imported.
@@ -94,6 +94,11 @@ def _main(job: str, args: dict, kill: str) -> None:
     import mifacerf.formats.files  # noqa: F401  (imports first: the kill is armed for the job alone)
     if job == "build":
         from mifacerf.rendering.build import build_model
+    elif job == "compress":
+        from mifacerf.rendering.compression import compress_model
+        from mifacerf.rendering.model import Model
+    elif job == "demo":
+        from demo_stand_in import run_demo
     else:
         from mifacerf.registration import register_capture
         from mifacerf.variant import ensure_variant
@@ -105,6 +110,10 @@ def _main(job: str, args: dict, kill: str) -> None:
         build_model(progress=False, **args)
     elif job == "register":
         register_capture(progress=False, **args)
+    elif job == "compress":
+        compress_model(Model(args["model"]), args["ranks"], progress=False, method="pca")
+    elif job == "demo":
+        run_demo(**args)
     else:
         raise SystemExit(f"unknown job {job}")
     print("done", flush=True)

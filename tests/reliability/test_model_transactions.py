@@ -240,3 +240,81 @@ def test_build_refuses_a_template_inconsistent_with_the_registration(toy_truth, 
     res = CliRunner().invoke(main, ["build", str(cap), "-o", str(tmp_path / "m")])
     assert res.exit_code == 1 and "Traceback" not in res.output
     assert len([ln for ln in res.stderr.splitlines() if ln.startswith("mifacerf build: error: ")]) == 1, res.stderr
+
+
+def _compressed_state(model, old):
+    """After a killed compress: the model as it was (byte-identical) or with every new file listed and
+    complete (verifies, ranks 4 and 6 recorded); nothing of a transaction beside it."""
+    from mifacerf.rendering.model import Model
+
+    m = Model(model)                          # (repairs an interrupted swap first)
+    assert siblings(model) == [], siblings(model)
+    if snapshot(model) == old:
+        return "old"
+    assert m.verify() == [], m.verify()
+    assert m.meta["compressed"]["pca"] == [4, 6]
+    for s in range(len(m.expressions)):
+        for c in range(len(m.cameras)):
+            if m.has_field(s, c):
+                m.compressed_field(s, c, 6, "pca")
+    return "new"
+
+
+@pytest.fixture
+def compressed(built):
+    """``built`` with rank-4 PCA fields (listed): a second compress rewrites them and adds rank 6."""
+    from mifacerf.rendering.compression import compress_model
+    from mifacerf.rendering.model import Model
+
+    cap, model, _ = built
+    compress_model(Model(model), 4, progress=False, method="pca")
+    shutil.copytree(model, model.parent / "rank4", copy_function=shutil.copy2)
+    return model, snapshot(model)
+
+
+def _back_to_rank4(model):
+    shutil.rmtree(model)
+    shutil.copytree(model.parent / "rank4", model, copy_function=shutil.copy2)
+
+
+def test_sigkill_during_compress_at_every_rename_of_the_swap(compressed):
+    """Item 2: a kill during 'mifacerf compress' left PCA files with a bad checksum or unlisted: compress is
+    now one transaction (a hard-linked copy of the model, the new files, model.json, swapped in)."""
+    model, old = compressed
+    outcomes = []
+    for n in (1, 2, 3):
+        p = run_child("compress", {"model": str(model), "ranks": [4, 6]}, f"call:rename:{n}:{model.name}")
+        assert killed(p), p.stderr[-2000:]
+        outcomes.append(_compressed_state(model, old))
+        _back_to_rank4(model)
+    assert outcomes == ["old", "new", "new"]   # once 'ready' exists, the swap is finished, not undone
+
+
+def test_sigkill_during_compress_while_writing_and_at_random_moments(compressed):
+    model, old = compressed
+    p = run_child("compress", {"model": str(model), "ranks": [4, 6]}, "call:replace:3:pca")   # mid-writes
+    assert killed(p), p.stderr[-2000:]
+    assert _compressed_state(model, old) == "old"
+    rnd = random.Random(2)
+    for _ in range(2):
+        p = start_child("compress", {"model": str(model), "ranks": [4, 6]}, f"time:{rnd.uniform(0, 1.0):.3f}")
+        p.wait(timeout=300)
+        p.stdout.read(), p.stderr.read()
+        if _compressed_state(model, old) == "new":
+            _back_to_rank4(model)
+
+
+@pytest.mark.parametrize("nth", [2, 9])
+def test_a_full_disk_during_compress_keeps_the_model(compressed, monkeypatch, nth):
+    from mifacerf.rendering.compression import compress_model
+    from mifacerf.rendering.model import Model
+
+    model, old = compressed
+    monkeypatch.setattr(os, "fsync", ENOSPC(nth))
+    with pytest.raises(OSError) as exc:
+        compress_model(Model(model), [4, 6], progress=False, method="pca")
+    assert exc.value.errno == errno.ENOSPC
+    assert snapshot(model) == old and siblings(model) == []
+    monkeypatch.undo()
+    compress_model(Model(model), [4, 6], progress=False, method="pca")       # the lock was released
+    assert _compressed_state(model, old) == "new"
