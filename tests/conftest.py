@@ -6,6 +6,9 @@ import pytest
 
 # Generated data (environments, the synthetic subject's atlas) is cached per test session.
 os.environ.setdefault("MIFACERF_CACHE", os.path.join(os.path.dirname(__file__), "..", ".cache-tests"))
+# Commands run in the test process (no local cluster per CLI test); tests/test_execution.py and the
+# *_distributed tests start their own 2-worker clusters.
+os.environ.setdefault("MIFACERF_WORKERS", "1")
 
 
 # Fixtures that take more than ~20 s to build on the 2-core CI machine. Every test that needs one (directly

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import click
 
+from ..execution import executor_options
+
 
 @click.command("track")
 @click.argument("performance", type=click.Path(exists=True, file_okay=False))
@@ -95,8 +97,16 @@ def run_drive(drive, track, model, out, envs, camera, size, spp, frames, no_exr,
 @click.command("drive")
 @click.argument("track", type=click.Path(exists=True, file_okay=False))
 @drive_options
-def drive_cmd(track, **options):
-    """Drive MODEL with a TRACK: §5 weights per frame, relit renders, composites, a video (paper §7)."""
+@executor_options
+def drive_cmd(track, workers, cluster, **options):
+    """Drive MODEL with a TRACK: §5 weights per frame, relit renders, composites, a video (paper §7).
+
+    The frames are rendered by a local cluster (one worker process per core), the scheduler at --cluster,
+    or this process alone with --workers 1; the files written are the same (docs/distributed.md)."""
+    from functools import partial
+
+    from ..execution import open_executor
     from .drive import drive
 
-    run_drive(drive, track, **options)
+    with open_executor(workers, cluster, shared=[options["model"]]) as executor:
+        run_drive(partial(drive, executor=executor), track, **options)

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..execution import Executor, worker_cached
 from ..formats.files import write_json_atomic
 from .coherence import PixelCoherence, weight_summary
 from .track import Track
@@ -73,6 +74,37 @@ def exposure_for(images) -> float:
     vals = img[..., :3][img[..., 3] > 0.5] if img.shape[-1] == 4 else img.reshape(-1, 3)
     p = float(np.percentile(vals, 99)) if vals.size else 1.0
     return 0.9 / max(p, 1e-6)
+
+
+class FrameContext:
+    """What every frame unit of one environment shares: the model, the environment, the camera, spp.
+
+    Pickled (sent to a worker) it keeps the model's folder instead of the loaded model; a worker loads
+    it once (:func:`mifacerf.execution.worker_cached`) for all its frames."""
+
+    def __init__(self, face, env, camera, spp: int):
+        self._face, self.root, self.env, self.camera, self.spp = face, str(face.model.root), env, camera, spp
+
+    def __getstate__(self):
+        return {**self.__dict__, "_face": None}
+
+    def face(self):
+        if self._face is None:
+            from ..rendering.api import load_model
+
+            stamp = os.stat(Path(self.root) / "model.json").st_mtime_ns
+            self._face = worker_cached(("model", self.root, stamp), lambda: load_model(self.root))
+        return self._face
+
+
+def render_frame(context: FrameContext, unit: tuple) -> tuple[np.ndarray, float]:
+    """One frame unit ``(f, target (T, 3), weights (T, S), parts or None)`` → (RGBA (H, W, 4), render seconds)."""
+    f, target, weights, parts = unit
+    face = context.face()
+    t0 = time.perf_counter()
+    rgba = face.renderer.render(target, weights, context.camera, context.env, spp=context.spp, seed=0, frame=f,
+                                parts=parts)
+    return rgba, time.perf_counter() - t0
 
 
 class VideoWriter:
@@ -138,8 +170,14 @@ class FrameObserver:
 
 def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: int | None = None, spp: int = 4,
           frames=None, exr: bool = True, video: bool = True, weight_sigma: float = 2.0, progress: bool = True,
-          log=None, observer: FrameObserver | None = None) -> Path:
-    """Drive ``model`` with ``track``; returns the output folder (see the module docstring)."""
+          log=None, observer: FrameObserver | None = None, executor: Executor | None = None) -> Path:
+    """Drive ``model`` with ``track``; returns the output folder (see the module docstring).
+
+    ``executor`` (:mod:`mifacerf.execution`; default: this process) renders the frames, one unit each
+    (:func:`render_frame`); everything else stays in this process and sees the whole sequence in order:
+    the weights filtered over the whole span, one exposure per environment (its first frame's), the
+    PNG/EXR frames, the coherence, the observer and one video. A run split over workers writes the same
+    files as one process."""
     from tqdm.auto import tqdm
 
     from ..imageio import to_srgb8, write_exr, write_png
@@ -207,10 +245,9 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
             observer.begin(ename, env, cam, edir)
         bar = tqdm(total=n, desc=f"drive {ename}", unit="frame", disable=not progress)
         env_exposure = None
-        for k, f in enumerate(fl):
-            t0 = time.perf_counter()
-            rgba = face.renderer.render(V[f], W[k], cam, env, spp=spp, seed=0, frame=f,
-                                        parts=frame_parts(face, tr, f, base) if base else None)
+        units = [(f, V[f], W[k], frame_parts(face, tr, f, base) if base else None) for k, f in enumerate(fl)]
+        rendered = (executor or Executor()).imap(render_frame, units, FrameContext(face, env, cam, spp))
+        for k, (f, (rgba, render_s)) in enumerate(zip(fl, rendered)):   # in frame order, wherever rendered
             t1 = time.perf_counter()
             rgb = composite(rgba, plate)
             if env_exposure is None:
@@ -222,7 +259,7 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
                 vw.add(to_srgb8(rgb, env_exposure))
             coh.add(rgba)
             t2 = time.perf_counter()
-            times["render"].append(t1 - t0)
+            times["render"].append(render_s)
             times["composite_write"].append(t2 - t1)
             note = observer.frame(f, rgba, plate, f in picks) if observer is not None else None
             if f in picks:
