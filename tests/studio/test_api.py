@@ -219,9 +219,11 @@ def test_register_with_a_hand_fix_and_proposals_read_no_truth(capture, studio_ca
 
 
 @pytest.mark.slow
-def test_from_no_hand_inputs_to_a_registered_neutral(capture, studio_capture, client_for):
-    """No hand/ at all: the template is proposed from the neutral's images (dots matched across views),
-    accepted, and the neutral registers into it; nothing of the truth is read."""
+def test_from_no_hand_inputs_to_registered_expressions(capture, studio_capture, client_for):
+    """No hand/ at all: the template is proposed from the neutral's images (dots matched across views,
+    lip and eyelid margins, eyes, teeth, regions, head points), accepted; then every expression is
+    proposed, accepted unedited and registered. Registration runs on nothing but the studio's
+    proposals, and nothing under the truth folder is opened on the way."""
     import shutil
     import time
 
@@ -237,16 +239,45 @@ def test_from_no_hand_inputs_to_a_registered_neutral(capture, studio_capture, cl
         tpl = json.loads((capture / "hand" / "template.json").read_text())
         assert tpl["schema"] == "mifacerf.template/1" and len(tpl["coarse_points"]) == 18
         assert len(tpl["triangles"]) > len(tpl["vertices"])
-        job = c.post("/api/register/neutral", headers=h).json()
-        for _ in range(600):
-            j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
-            if j["state"] in ("done", "failed"):
-                break
-            time.sleep(0.2)
-        assert j["state"] == "done", j
-        ex = c.get("/api/session", headers=h).json()["expressions"][0]
-        assert ex["registered"] and ex["dots_registered"] >= 0.4 * len(tpl["vertices"])
+        assert set(tpl["margins"]) == {"lip_upper", "lip_lower", "lid_upper_L", "lid_lower_L", "lid_upper_R",
+                                       "lid_lower_R"}
+        assert set(tpl["eyes"]) == {"eye_left", "eye_right"} and set(tpl["teeth"]) == {"upper", "lower"}
+        assert {"forehead", "nose", "chin", "mouth"} <= set(tpl["regions"])
+        assert set(tpl["head_points"]) == {"ear_L", "ear_R", "nose_bridge"}
+        kinds = [v["kind"] for v in tpl["vertices"]]
+        n_dots = kinds.count("dot")
+        # the left eye is on the subject's left (+X), the mouth below the eyes
+        assert tpl["eyes"]["eye_left"]["centre"][0] > tpl["eyes"]["eye_right"]["centre"][0]
+        lips = [tpl["vertices"][i]["position"][1] for i in tpl["margins"]["lip_upper"]]
+        assert max(lips) < tpl["eyes"]["eye_left"]["centre"][1] - 0.04
+
+        def register(name):
+            job = c.post(f"/api/register/{name}", headers=h).json()
+            for _ in range(900):
+                j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
+                if j["state"] in ("done", "failed"):
+                    return j
+                time.sleep(0.2)
+            raise AssertionError("registration did not finish")
+        for name in ("neutral", "smile"):
+            g = c.get(f"/api/expression/{name}", headers=h).json()
+            prop = c.get(f"/api/proposals/{name}", headers=h).json()
+            assert prop["source"] == ("template" if name == "neutral" else "neutral")
+            assert len(prop["state"]["coarse"]) >= 14 and len(prop["state"]["rotoscope"]["curves"]) == 8
+            assert c.put(f"/api/expression/{name}/hand", headers=h,
+                         json={"version": g["version"], "state": prop["state"]}).status_code == 200
+            assert register(name)["state"] == "done"
+        ex = {e["name"]: e for e in c.get("/api/session", headers=h).json()["expressions"]}
+        for name in ("neutral", "smile"):
+            assert ex[name]["registered"] and ex[name]["n_dots"] == n_dots
+            assert ex[name]["dots_registered"] >= 0.45 * n_dots, ex[name]
+        meta = json.loads((capture / "registration" / "registration.json").read_text())
+        rep = meta["expressions"]["smile"]
+        assert all(v["views"] for v in rep["lips_eyelids"].values() if isinstance(v, dict))
+        eyes = np.load(capture / "registration" / "expressions" / "smile.npz")["eye_centres"]
+        assert np.isfinite(eyes).all() and eyes[0, 0] > eyes[1, 0]     # from the proposed template's eyes
     assert opened == []
+    assert sorted(p.name for p in (capture / "hand").iterdir()) == ["coarse_points.json", "rotoscope", "template.json"]
 
 
 def test_views_with_no_dots_give_no_proposals_and_no_crash(capture, monkeypatch):
