@@ -12,12 +12,18 @@ places it from what is registered:
   fiducials, rigid beyond ``falloff`` metres — so the skin between follows the face and the far end
   of the region moves with the head.
 
-Bad input: an extension not attached to the face (no vertex shared with a face triangle) is an error
-naming the gap; a driven region with no fiducial within ``falloff`` of any of its vertices falls back
-to rigid with the head and says so in the report (``fallbacks``).
+Each extension has an ``anchor``: ``head`` (default) or ``body`` — what it follows where no fiducial
+drives it. ``body`` is the capture's world frame (the subject's shoulders do not move between
+expressions): the base of the neck, which must not turn with the head.
 
-Not yet wired into :func:`mifacerf.registration.register.register_capture` nor produced by the
-template writers (issue 16 items 1-2 open): this module is the placement rule and its checks.
+Bad input: an extension not attached to the face (no vertex shared with a face triangle, or a
+group of extensions connected to each other but not to the face) is an error naming the gap; a driven
+region with no fiducial within ``falloff`` of any of its vertices falls back to rigid with its anchor
+and says so in the report (``fallbacks``).
+
+The template declares extensions in its ``extensions`` member (docs/registration.md, read by
+:func:`extensions_from_template`); :func:`mifacerf.registration.register.register_capture` places them
+per expression after the fiducials are registered.
 """
 from __future__ import annotations
 
@@ -29,22 +35,91 @@ from ..geometry.rigid import apply, robust_rigid
 from ..geometry.schaefer2006 import mls_affine
 
 MODES = ("rigid", "driven")
+ANCHORS = ("head", "body")
 
 
 @dataclass(frozen=True)
 class Extension:
     """One template extension: ``vertices`` (template vertex indices, no fiducials among them),
-    ``mode`` ('rigid' or 'driven'), ``falloff`` (metres; driven only)."""
+    ``mode`` ('rigid' or 'driven'), ``falloff`` (metres; driven only), ``anchor`` ('head' or 'body')."""
     name: str
     vertices: np.ndarray
     mode: str = "rigid"
     falloff: float = 0.03
+    anchor: str = "head"
 
     def __post_init__(self):
         if self.mode not in MODES:
             raise ValueError(f"extension {self.name!r}: unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        if self.anchor not in ANCHORS:
+            raise ValueError(f"extension {self.name!r}: unknown anchor {self.anchor!r}; choose one of "
+                             f"{', '.join(ANCHORS)}")
         if self.mode == "driven" and not self.falloff > 0:
             raise ValueError(f"extension {self.name!r}: falloff must be > 0 metres, got {self.falloff}")
+
+
+def extensions_from_template(template: dict, n_vertices: int | None = None) -> list[Extension]:
+    """The :class:`Extension` list a template dict declares (its optional ``extensions`` member,
+    docs/registration.md); [] for a template without one. Refuses ids out of range, an empty extension
+    and a vertex in two extensions, naming the extension."""
+    decl = template.get("extensions") or {}
+    if not isinstance(decl, dict):
+        raise ValueError("template 'extensions' must be an object {name: {vertices, mode, ...}}")
+    n = len(template.get("vertices", [])) if n_vertices is None else int(n_vertices)
+    out, owner = [], {}
+    for name, e in decl.items():
+        try:
+            v = np.asarray(e["vertices"], np.int64).reshape(-1)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"extension {name!r}: needs 'vertices', a list of template vertex ids ({exc})") from exc
+        if not len(v):
+            raise ValueError(f"extension {name!r} has no vertices")
+        if v.min() < 0 or v.max() >= n:
+            raise ValueError(f"extension {name!r}: vertex ids outside [0, {n})")
+        for i in v.tolist():
+            if i in owner:
+                raise ValueError(f"vertex {i} is in two extensions ({owner[i]!r} and {name!r})")
+            owner[i] = name
+        out.append(Extension(str(name), v, str(e.get("mode", "rigid")), float(e.get("falloff", 0.03)),
+                             str(e.get("anchor", "head"))))
+    return out
+
+
+def check_extensions(template, faces, fiducials, extensions) -> None:
+    """Every extension attached to the face: none holds a fiducial, each shares a vertex with a triangle
+    outside it (:func:`check_attached`) and every connected piece of the mesh that holds extension
+    vertices also holds face vertices (no group of extensions stitched to each other alone)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    X = np.asarray(template, np.float64)
+    F = np.asarray(faces, np.int64)
+    fid_set = set(np.asarray(fiducials, int).tolist())
+    is_ext = np.zeros(len(X), bool)
+    for ext in extensions:
+        v = np.asarray(ext.vertices, int)
+        if fid_set & set(v.tolist()):
+            raise ValueError(f"extension {ext.name!r} holds fiducials; an extension carries none")
+        check_attached(ext.name, v, F, X)
+        is_ext[v] = True
+    if not is_ext.any() or not len(F):
+        return
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    G = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(len(X), len(X)))
+    _, comp = connected_components(G, directed=False)
+    used = np.zeros(len(X), bool)
+    used[F.ravel()] = True
+    face_comps = set(comp[used & ~is_ext].tolist())
+    for ext in extensions:
+        v = np.asarray(ext.vertices, int)
+        lone = [c for c in set(comp[v].tolist()) if c not in face_comps]
+        if lone:
+            pts = X[v][np.isin(comp[v], lone)]
+            rest = X[used & ~is_ext]
+            gap = np.min(np.linalg.norm(pts[:, None] - rest[None], axis=2)) if len(rest) else float("nan")
+            raise ValueError(f"extension {ext.name!r} is not attached to the face: its piece of the mesh "
+                             f"reaches no face vertex (gap {1000 * gap:.1f} mm to the nearest face vertex); "
+                             "stitch it to the face's border")
 
 
 def falloff_weight(distance, falloff: float) -> np.ndarray:
@@ -96,7 +171,7 @@ def place_extensions(template, faces, fiducials, registered, extensions, head=No
         if fid_set & set(v.tolist()):
             raise ValueError(f"extension {ext.name!r} holds fiducials; an extension carries none")
         check_attached(ext.name, v, faces, X)
-        rigid = apply(T, X[v])
+        rigid = apply(T, X[v]) if ext.anchor == "head" else X[v].copy()
         mode = ext.mode
         if mode == "driven":
             src, dst = X[fid][good], R[good]
@@ -104,7 +179,7 @@ def place_extensions(template, faces, fiducials, registered, extensions, head=No
             if not (d < ext.falloff).any():
                 report["fallbacks"].append(f"extension {ext.name!r}: no registered fiducial within "
                                            f"{1000 * ext.falloff:.0f} mm (nearest {1000 * d.min():.1f} mm): "
-                                           "rigid with the head")
+                                           f"rigid with the {ext.anchor}")
                 mode = "rigid"
             else:
                 w = falloff_weight(d, ext.falloff)[:, None]
@@ -112,5 +187,5 @@ def place_extensions(template, faces, fiducials, registered, extensions, head=No
                 out[v] = rigid + w * (driven - rigid)
         if mode == "rigid":
             out[v] = rigid
-        report["extensions"][ext.name] = {"mode": mode, "vertices": int(len(v))}
+        report["extensions"][ext.name] = {"mode": mode, "anchor": ext.anchor, "vertices": int(len(v))}
     return out, report

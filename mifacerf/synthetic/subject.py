@@ -184,7 +184,7 @@ class Subject:
         F = self.skin_faces
         C = chart.points(F, np.arange(len(F)), np.full((len(F), 3), 1.0 / 3.0))
         X = tpl.extra["chart"]
-        tri = mtri.Triangulation(X[:, 0], X[:, 1], np.asarray(tpl.triangles))
+        tri = mtri.Triangulation(X[:, 0], X[:, 1], np.asarray(tpl.face_triangles))
         inside = tri.get_trifinder()(C[:, 0], C[:, 1]) >= 0
         for loop in tpl.holes.values():
             inside |= _point_in_poly(C, X[np.asarray(loop)])

@@ -77,6 +77,8 @@ class Template:
     bary: np.ndarray | None = None
     subject: str = "procedural"
     extra: dict = field(default_factory=dict)
+    #: name -> {"vertices": ids, "mode": "rigid"|"driven", "anchor": "head"|"body", "falloff": m, "region"}
+    extensions: dict = field(default_factory=dict)
 
     @property
     def n_vertices(self) -> int:
@@ -85,6 +87,23 @@ class Template:
     @property
     def dot_ids(self) -> np.ndarray:
         return np.array([i for i, k in enumerate(self.kinds) if k == "dot"], int)
+
+    @property
+    def extension_ids(self) -> np.ndarray:
+        """Template ids of every extension vertex (sorted)."""
+        ids = [np.asarray(e["vertices"], int) for e in self.extensions.values()]
+        return np.unique(np.concatenate(ids)) if ids else np.zeros(0, int)
+
+    @property
+    def face_triangles(self) -> np.ndarray:
+        """The triangles of the face alone: the mesh over the fiducials (those before the extensions' when
+        this template made them; read from JSON: those with no extension vertex)."""
+        T = np.asarray(self.triangles, int)
+        if "n_face_triangles" in self.extra:
+            return T[:self.extra["n_face_triangles"]]
+        ext = np.zeros(len(self.kinds), bool)
+        ext[self.extension_ids] = True
+        return T[~ext[T].any(1)]
 
     @property
     def coarse_triangles_template(self) -> np.ndarray:
@@ -145,6 +164,8 @@ class Template:
             "eyes": {k: {"centre": [float(c) for c in e["centre"]], "radius": float(e["radius"])}
                      for k, e in self.eyes.items()},
         }
+        if self.extensions:
+            doc["extensions"] = extensions_to_json(self.extensions)
         return json.dumps(doc, indent=indent)
 
     @classmethod
@@ -172,7 +193,21 @@ class Template:
             tri=np.array([v["triangle"] for v in vs], int) if truth else None,
             bary=np.array([v["bary"] for v in vs], float) if truth else None,
             subject=d.get("subject", ""),
+            extensions={k: dict(e, vertices=np.array(e["vertices"], int)) for k, e in (d.get("extensions") or {}).items()},
         )
+
+
+def extensions_to_json(extensions: dict) -> dict:
+    """The template's ``extensions`` member (docs/registration.md): per name its vertex ids, mode, anchor,
+    falloff (driven) and region."""
+    out = {}
+    for k, e in extensions.items():
+        d = {"vertices": [int(i) for i in e["vertices"]], "mode": str(e.get("mode", "rigid")),
+             "anchor": str(e.get("anchor", "head")), "region": str(e.get("region", k))}
+        if "falloff" in e:
+            d["falloff"] = float(e["falloff"])
+        out[k] = d
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,7 +358,8 @@ def marked_vertices(neutral):
 def flip_improve(P3, X2, T, max_passes=60):
     """Intrinsic-Delaunay edge flips on 3-D positions: flip an interior edge when the two angles
     opposite it sum to more than π, if the flipped pair is valid (positive area in the 2-D chart
-    ``X2``, no fold in 3-D). Boundary (hole and outer) edges never flip; orientation is kept.
+    ``X2``, no fold in 3-D; without a chart, ``X2=None``, both new triangles face within 60° of the
+    old pair's normal). Boundary (hole and outer) edges never flip; orientation is kept.
     Each sweep flips non-adjacent edges in one go; sweeps repeat until none applies."""
     T = np.array(T, int)
 
@@ -365,12 +401,18 @@ def flip_improve(P3, X2, T, max_passes=60):
                 p = X2[list(tr)]
                 return (p[1, 0] - p[0, 0]) * (p[2, 1] - p[0, 1]) - (p[1, 1] - p[0, 1]) * (p[2, 0] - p[0, 0])
 
-            if area2(n1) <= 0 or area2(n2) <= 0:
+            if X2 is not None and (area2(n1) <= 0 or area2(n2) <= 0):
                 continue
             nn1 = np.cross(P3[n1[1]] - P3[n1[0]], P3[n1[2]] - P3[n1[0]])
             nn2 = np.cross(P3[n2[1]] - P3[n2[0]], P3[n2[2]] - P3[n2[0]])
             if nn1 @ nn2 <= 0:
                 continue
+            if X2 is None:      # no chart: the new pair must face the way the old pair did
+                old = np.cross(P3[T[t1][1]] - P3[T[t1][0]], P3[T[t1][2]] - P3[T[t1][0]]) + \
+                    np.cross(P3[T[t2][1]] - P3[T[t2][0]], P3[T[t2][2]] - P3[T[t2][0]])
+                unit = lambda v: v / max(np.linalg.norm(v), 1e-30)  # noqa: E731
+                if min(unit(nn1) @ unit(old), unit(nn2) @ unit(old)) < 0.5:
+                    continue
             T[t1], T[t2] = n1, n2
             touched[t1] = touched[t2] = True
             flipped += 1
@@ -384,7 +426,10 @@ def improve(P3, X2, T):
     return flip_improve(P3, X2, T)
 
 
-def build_template(subj) -> Template:
+def build_template(subj, extensions: bool = True, **extension_options) -> Template:
+    """The procedural subject's template: the face mesh over the fiducials and marked points and, with
+    ``extensions`` (default), the scalp, ears, sides and neck down to a cut
+    (:func:`.template_extensions.add_extensions`; ``extension_options`` e.g. ``neck_cut_y``, ``spacing``)."""
     grid = subj.grid
     F = subj.skin_faces
     Vn = subj.neutral_skin
@@ -472,6 +517,12 @@ def build_template(subj) -> Template:
     tpl = Template(kinds, names, neutral, T, coarse, list(COARSE_NAMES), Tc, regions, holes, teeth, eyes,
                    ["skin"] * len(kinds), tri, bary, "procedural",
                    extra={"skin_faces": F, "chart": X, "delaunay": dl, "delaunay_keep": keep})
+    if extensions:
+        from .template_extensions import add_extensions
+
+        tpl = add_extensions(tpl, Vn, F, **extension_options)
+        new = tpl.tri[len(X):]
+        tpl.extra["chart"] = np.concatenate([X, chart.points(F, new, tpl.bary[len(X):])])
     return tpl
 
 

@@ -31,7 +31,7 @@ def test_rigid_extension_follows_the_head_pose_exactly():
     out, rep = place_extensions(X, F, fid, apply(T, X[fid]), [Extension("scalp", ext, "rigid")])
     assert np.allclose(out[ext], apply(T, X[ext]), atol=1e-9)
     assert np.array_equal(out[fid], X[fid])        # the face is not touched
-    assert rep["extensions"]["scalp"] == {"mode": "rigid", "vertices": 6} and rep["fallbacks"] == []
+    assert rep["extensions"]["scalp"] == {"mode": "rigid", "anchor": "head", "vertices": 6} and rep["fallbacks"] == []
 
 
 def test_driven_extension_follows_the_fiducials_near_and_the_head_far():

@@ -95,9 +95,11 @@ def test_template_mesh_quality_and_holes(subj):
     cen = P[T].mean(1)
     skin_n = subj.neutral.skin_normals[cKDTree(subj.neutral_skin).query(cen)[1]]
     assert np.mean(np.einsum("ij,ij->i", nrm, skin_n) > 0) > 0.99
-    # no slivers (3-D angles)
-    mn, mx = triangle_quality(P, T)
+    # no slivers on the face (3-D angles); the extensions' stitches and hole fills: a few, none degenerate
+    mn, mx = triangle_quality(P, t.face_triangles)
     assert mn.min() > 9.0 and mx.max() < 140.0
+    mn, mx = triangle_quality(P, T)
+    assert mn.min() > 1.0 and np.mean(mn < 9.0) < 0.01
     # the mouth and eye openings are holes: their loops are boundary edges
     boundary = {tuple(x) for x in und[cnt == 1]}
     assert set(t.holes) == {"mouth", "eye_left", "eye_right"}
@@ -122,9 +124,10 @@ def test_coarse_points_and_regions(subj):
     assert tip[2] > 0.105 and abs(tip[0]) < 0.004
     Tc = np.asarray(t.coarse_triangles)
     assert len(Tc) >= 16 and Tc.min() >= 0 and Tc.max() < 18
-    # regions partition the vertices, each non-empty
-    assert set(t.regions) == set(REGION_NAMES)
-    allr = np.concatenate([t.regions[k] for k in REGION_NAMES])
+    # regions partition the vertices, each non-empty: the face's ten and one per extension
+    ext_regions = {e["region"] for e in t.extensions.values()}
+    assert set(t.regions) == set(REGION_NAMES) | ext_regions
+    allr = np.concatenate([t.regions[k] for k in t.regions])
     assert len(allr) == t.n_vertices and len(np.unique(allr)) == t.n_vertices
     for k in REGION_NAMES:
         assert len(t.regions[k]) >= 5, k
