@@ -5,6 +5,8 @@ from pathlib import Path
 
 import click
 
+from ..execution import executor_options
+
 
 @click.command("synth")
 @click.argument("out", type=click.Path(file_okay=False))
@@ -20,15 +22,25 @@ import click
               help="Also record a multi-view performance this long into OUT/performance (an existing capture "
                    "is reused); see docs/tracking.md.")
 @click.option("--performance-size", type=click.IntRange(min=1), default=192, show_default=True, help="Video resolution (square).")
-def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size):
-    """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth)."""
+@executor_options
+def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size,
+              workers, cluster):
+    """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth).
+
+    The (expression, camera) takes are rendered by a local cluster (one worker process per core), the
+    scheduler at --cluster, or this process alone with --workers 1 (docs/distributed.md)."""
+    from ..execution import open_executor
     from ..formats.capture import CaptureError
     from .synth import synthesize
 
     reuse = performance is not None and not overwrite and (Path(out) / "capture" / "manifest.json").exists()
     try:
-        cap = Path(out) / "capture" if reuse else synthesize(
-            out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite)
+        if not reuse:
+            Path(out).mkdir(parents=True, exist_ok=True)
+        with open_executor(workers if not reuse else 1, cluster, shared=[out, subject_folder]) as executor:
+            cap = Path(out) / "capture" if reuse else synthesize(
+                out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite,
+                executor=executor)
         if performance is not None:
             from .recording import record_performance
 

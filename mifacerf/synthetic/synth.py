@@ -62,8 +62,13 @@ def write_truth_expression(truth_dir: Path, name: str, params: np.ndarray, pose)
 
 
 def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=None, expressions=None,
-               overwrite: bool = False, progress: bool = True, rig: Rig | None = None, seed: int = 0) -> Path:
-    """Render the capture of a synthetic subject into ``out``; returns the capture folder."""
+               overwrite: bool = False, progress: bool = True, rig: Rig | None = None, seed: int = 0,
+               executor=None) -> Path:
+    """Render the capture of a synthetic subject into ``out``; returns the capture folder.
+
+    ``executor`` (:mod:`mifacerf.execution`): on a cluster each (expression, camera) take is one unit
+    (:func:`synth_take`: a worker renders its images and writes them into the shared capture folder through
+    the same writer); without one, or with one process, this process renders them as before."""
     from tqdm.auto import tqdm
 
     from . import SubjectScene
@@ -90,11 +95,69 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
                         for e in exprs],
         "dot_radius": float(getattr(subject, "dot_radius", 0.0)),
     })
-    scene = SubjectScene(subject)
     lights = rig.lights
     total = len(exprs) * len(rig.cameras) * len(lights)
     bar = tqdm(total=total, desc="synth", unit="img", disable=not progress, smoothing=0.05)
     poses = {}
+    if executor is not None and executor.distributed:
+        takes = []
+        for e in exprs:
+            pose = poses[e.name] = subject.pose(e.params)
+            write_truth_expression(truth_dir, e.name, e.params, pose)
+            for cam in rig.cameras:
+                paths = [writer.image_path(e.name, cam.name, l) for l in range(len(lights))]
+                if all(p.exists() for p in paths):  # resumed run: this take is already on disk
+                    for p in paths:
+                        writer.checksums[p.relative_to(writer.root).as_posix()] = sha256_file(p)
+                    bar.update(len(lights))
+                else:
+                    takes.append((e.name, np.asarray(e.params), cam.name))
+        context = SynthContext(subject_folder, writer, pre.spp, seed)
+        for sums in executor.imap(synth_take, takes, context):
+            writer.checksums.update(sums)
+            bar.update(len(lights))
+    else:
+        _synthesize_here(writer, subject, SubjectScene(subject), exprs, rig, truth_dir, poses, pre.spp, seed, bar)
+    bar.close()
+    write_hand_inputs(cap_dir, subject, exprs, poses, rig, seed=seed)
+    writer.finish()
+    return cap_dir
+
+
+class SynthContext:
+    """What every take unit shares: the subject (its folder, or None for the default), the capture writer
+    (root, rig), spp and seed. A worker builds the subject's scene once (:func:`mifacerf.execution.worker_cached`)."""
+
+    def __init__(self, subject_folder, writer: CaptureWriter, spp: int, seed: int):
+        self.subject_folder = None if subject_folder is None else str(subject_folder)
+        self.writer, self.spp, self.seed = writer, spp, seed
+
+
+def synth_take(context: SynthContext, unit: tuple) -> dict:
+    """One take ``(expression, params, camera)``: its images rendered and written (atomically) into the
+    capture folder; returns their checksums {relative path: sha256}."""
+    from ..execution import worker_cached
+    from . import SubjectScene
+
+    name, params, camera = unit
+    subject, scene, posed = worker_cached(("synth subject", context.subject_folder), lambda: (
+        lambda subj: (subj, SubjectScene(subj), {}))(load_subject(context.subject_folder)))
+    if posed.get("name") != name:
+        scene.set_pose(subject.pose(params))
+        posed["name"] = name
+    w, lights = context.writer, context.writer.rig.lights
+    imgs = render_olat(scene.scene, w.rig.camera(camera), lights.directions, lights.irradiance, spp=context.spp,
+                       seed=context.seed)
+    sums = {}
+    for l, img in enumerate(imgs):
+        rel = w.write_image(name, camera, l, img).relative_to(w.root).as_posix()
+        sums[rel] = w.checksums.pop(rel, None) or sha256_file(w.root / rel)
+    return sums
+
+
+def _synthesize_here(writer, subject, scene, exprs, rig, truth_dir, poses, spp, seed, bar) -> None:
+    """The takes rendered in this process, each written by a thread while the next camera renders."""
+    lights = rig.lights
     with ThreadPoolExecutor(max_workers=2) as pool:
         pending = []
         for e in exprs:
@@ -112,17 +175,13 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
                 if not posed:
                     scene.set_pose(pose)
                     posed = True
-                imgs = render_olat(scene.scene, cam, lights.directions, lights.irradiance, spp=pre.spp,
+                imgs = render_olat(scene.scene, cam, lights.directions, lights.irradiance, spp=spp,
                                    seed=seed)
                 for f in pending:
                     f.result()
                 pending = [pool.submit(_write_all, writer, e.name, cam.name, imgs, bar)]
         for f in pending:
             f.result()
-    bar.close()
-    write_hand_inputs(cap_dir, subject, exprs, poses, rig, seed=seed)
-    writer.finish()
-    return cap_dir
 
 
 def _write_all(writer: CaptureWriter, expression: str, camera: str, images: np.ndarray, bar) -> None:
