@@ -15,7 +15,9 @@ folder (manifest, images, ``hand/``) and writes a registration folder
    progressive snap-to with visibility ray-traced on the current estimate, the consensus pass
    (:mod:`.consensus`) and, for fiducials one view alone shows, the single-view snap (:mod:`.single_view`);
 5. **head pose, teeth, eyes** (:mod:`.eyes_teeth`), **lips and eyelids** relaxed onto the
-   rotoscoped curves (:mod:`.contours`);
+   rotoscoped curves (:mod:`.contours`); the template's **extensions** (scalp, ears, neck: no
+   fiducials) placed rigidly with the head or driven by the nearest registered fiducials
+   (:mod:`.extensions`, reported per expression under ``extensions``);
 6. **dot removal** from every OLAT image (:mod:`.dot_removal`);
 7. **texture coordinates** and per-vertex visibility (:mod:`.texcoords`);
 8. a per-expression report (registered fraction, threshold schedule, everything that could
@@ -40,6 +42,7 @@ from . import eyes_teeth as ET
 from .contours import curve_residuals, propagate, relax_margin, rings
 from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS, Inpainter, dot_mask, fill_dots
 from .dots import DotFilter, face_mask, peak_near
+from .extensions import check_extensions, extensions_from_template, place_extensions
 from .hand import HandInputs, Template, read_hand_inputs
 from .overrides import fixed_positions
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances
@@ -139,6 +142,14 @@ class Registrar:
                 f"({'; '.join(self.hand.problems) or 'missing'}); registration needs the base mesh a user built "
                 "on the neutral (docs/registration.md)")
         self.tpl: Template = self.hand.template
+        try:   # a template whose extensions cannot be placed stops here, before any work
+            self.extensions = extensions_from_template(self.tpl.raw, self.tpl.n_vertices)
+            check_extensions(self.tpl.vertices, self.tpl.triangles, self.tpl.dot_ids, self.extensions)
+        except ValueError as exc:
+            raise RegistrationInputError(f"{capture.root / 'hand' / 'template.json'}: {exc}") from exc
+        self.is_extension = np.zeros(self.tpl.n_vertices, bool)
+        for ext in self.extensions:
+            self.is_extension[ext.vertices] = True
         self.cams = list(capture.rig.cameras)
         self.names = [c.name for c in self.cams]
         self.camd = {c.name: c for c in self.cams}
@@ -151,10 +162,10 @@ class Registrar:
         self.neighbours = dot_graph(self.tpl.n_vertices, self.tpl.triangles, self.is_dot)
         self.rings2 = two_rings(self.neighbours)
         margins = self.tpl.margin_ids()
-        self.extras = np.flatnonzero(~self.is_dot)
+        self.extras = np.flatnonzero(~self.is_dot & ~self.is_extension)   # extensions: place_extensions
         if margins.size:
             dist = rings(self.tpl.n_vertices, self.tpl.triangles, margins, self.opt.movable_rings)
-            self.movable = np.flatnonzero((dist >= 0) & ~self.is_dot)
+            self.movable = np.flatnonzero((dist >= 0) & ~self.is_dot & ~self.is_extension)
         else:
             self.movable = np.zeros(0, np.int64)
         self.neutral = next((e.name for e in capture.expressions if e.category == "neutral"),
@@ -424,6 +435,37 @@ class Registrar:
         e.report["lips_eyelids"] = out
         return V
 
+    def place_extension_vertices(self, name: str, V: np.ndarray, status: np.ndarray, T_head: np.ndarray,
+                                 e: Expr) -> None:
+        """The template's extensions (:mod:`.extensions`) placed in ``V`` (in place) from this expression's
+        registered fiducials and head pose: rigid with the head (or the body), or driven by the nearest
+        fiducials' motion from the neutral with a falloff. Their status is 1 (placed from registered data)
+        unless the head pose itself is predicted. Reported per extension (mode, fallbacks)."""
+        if not self.extensions:
+            return
+        base = self.tpl.vertices.copy()       # extensions: where the user put them on the neutral
+        R = V[self.dots].copy()
+        ok = status[self.dots] == 1
+        if name != self.neutral:              # the fiducials' motion from the registered neutral
+            N = self.registered[self.neutral]
+            base[self.dots] = N.vertices[self.dots]
+            ok &= N.status[self.dots] == 1
+        R[~ok] = np.nan
+        try:
+            P, rep = place_extensions(base, self.tpl.triangles, self.dots, R, self.extensions, head=T_head)
+        except ValueError as exc:             # fewer than three registered fiducials
+            P, rep = base, {"extensions": {}, "fallbacks": [f"{exc}: every extension left where the template "
+                                                            "has it (predicted)"]}
+            for ext in self.extensions:
+                rep["extensions"][ext.name] = {"mode": "template", "anchor": ext.anchor, "vertices": len(ext.vertices)}
+        ids = np.flatnonzero(self.is_extension)
+        V[ids] = P[ids]
+        predicted = str(e.report.get("head_pose", {}).get("source", "")).startswith("none") or \
+            any(r["mode"] == "template" for r in rep["extensions"].values())
+        status[ids] = 0 if predicted else 1
+        e.report["extensions"] = rep
+        e.flags.extend(rep["fallbacks"])
+
     def head_points(self, name: str, V: np.ndarray, status: np.ndarray, known: dict) -> dict:
         """Ear / nose-bridge points of an expression {name: (3,)}: the user's marks (rotoscope
         points, or the coarse points when those are the head points), else registered vertices."""
@@ -596,6 +638,7 @@ class Registrar:
             V[vid], status[vid] = p, 1
         V = self.relax_contours(name, V, status, e)
         T_head = self.head_pose(name, V, status, known, e)
+        self.place_extension_vertices(name, V, status, T_head, e)
         if name == self.neutral:
             hp = self.head_points(name, V, status, known)
             for k, vid in self.tpl.head_points.items():

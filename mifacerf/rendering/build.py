@@ -6,6 +6,14 @@ reflectance field restricted to the pixels where the registered template is seen
 (texel map by ray casting the pixel centres: triangle, barycentrics, depth), stored
 texel-major in float16; the §5 blend model (local deformation spaces, Delaunay,
 culling); the eye and teeth reference expressions.
+
+Template **extensions** (scalp, ears, neck: the template's ``extensions`` member, placed per expression by
+the registration) are part of the mesh, so their fields are built like the face's (pixels where a
+capture camera sees them) and their regions join the culling regions. ``model.json`` reports each one
+(``extensions``: mode, anchor, vertices, triangles, texels, status, the registration's fall-backs).
+Bad input: an extension not attached to the face is an error; one that no capture camera sees in any
+expression is left out of the model (its triangles dropped; ``status`` says so and a warning names
+it) — it could only ever render as a hole.
 """
 from __future__ import annotations
 
@@ -15,6 +23,7 @@ import numpy as np
 
 from ..formats.capture import Capture
 from ..formats.registration import Registration, RegistrationError
+from ..registration.extensions import check_extensions, extensions_from_template
 from ..geometry.meshscene import MeshScene
 from ..validation import check_field
 from .parts import build_part_fields, choose_references, part_sources, part_visibility
@@ -34,6 +43,50 @@ def template_arrays(template: dict) -> dict:
     fiducial = np.array([k == "dot" for k in kinds]) if kinds is not None else np.ones(n, bool)
     regions = {k: np.asarray(v, np.int64) for k, v in (template.get("regions") or {}).items()}
     return {"triangles": tri, "fiducial": fiducial, "regions": regions, "n_vertices": n}
+
+
+def triangle_extensions(triangles, extensions, n_vertices: int) -> np.ndarray:
+    """(F,) index into ``extensions`` of the extension each triangle belongs to (that of its first vertex
+    in an extension; a stitch between an extension and the face belongs to the extension), -1: the face."""
+    owner = np.full(n_vertices, -1, np.int64)
+    for k, ext in enumerate(extensions):
+        owner[np.asarray(ext.vertices, np.int64)] = k
+    o = owner[np.asarray(triangles, np.int64)]
+    first = np.argmax(o >= 0, axis=1)
+    return np.where((o >= 0).any(1), o[np.arange(len(o)), first], -1)
+
+
+def extension_report(reg, names, geometry, t, cam_idx) -> tuple[list, dict, np.ndarray]:
+    """The template's extensions checked against the registered geometry: (the extensions, the build
+    report {name: {...}}, (F,) bool the triangles to build — those of an extension no capture camera sees
+    in any expression are left out)."""
+    import warnings
+
+    try:
+        exts = extensions_from_template(reg.template, t["n_vertices"])
+        if exts:
+            neutral = geometry["neutral"] if "neutral" in geometry else geometry[names[0]]
+            check_extensions(neutral.vertices, t["triangles"], np.flatnonzero(t["fiducial"]), exts)
+    except ValueError as exc:
+        raise RegistrationError(f"{reg.root / 'template.json'}: {exc}") from exc
+    tri_ext = triangle_extensions(t["triangles"], exts, t["n_vertices"])
+    keep = np.ones(len(t["triangles"]), bool)
+    out = {}
+    for k, ext in enumerate(exts):
+        seen = any(bool(geometry[n].visible[cam_idx][:, ext.vertices].any()) for n in names)
+        fallbacks = sorted({f"{n}: {f}" for n in names
+                            for f in (reg.report(n).get("extensions") or {}).get("fallbacks", [])
+                            if f"{ext.name!r}" in f})
+        out[ext.name] = {"mode": ext.mode, "anchor": ext.anchor, "vertices": int(len(ext.vertices)),
+                         "triangles": int((tri_ext == k).sum()), "texels": 0,
+                         "status": "built" if seen else "left out: no capture camera sees it in any expression",
+                         "registration_fallbacks": fallbacks}
+        if not seen:
+            keep &= tri_ext != k
+            out[ext.name]["triangles"] = 0
+            warnings.warn(f"extension {ext.name!r}: no capture camera sees it in any expression; left out of the "
+                          "model (its triangles dropped)", stacklevel=3)
+    return exts, out, keep
 
 
 def build_model(capture: str | Path, out: str | Path, registration: str | Path | None = None,
@@ -68,6 +121,10 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
     cam_idx = [cap.camera_names.index(c.name) for c in cams]
     t = reg.check_template(names, template_arrays)     # the template the registration was made on
     neutral = names[0] if "neutral" not in names else "neutral"
+    geometry = {n: reg.expression(n) for n in names}
+    exts, ext_report, keep = extension_report(reg, names, geometry, t, cam_idx)
+    t["triangles"] = t["triangles"][keep]
+    tri_ext = triangle_extensions(t["triangles"], exts, t["n_vertices"])
     writer = ModelWriter(out, cap.rig.lights.directions, cap.rig.lights.solid_angles, cams,
                          [(n, cap.expressions[cap.expression_index(n)].category) for n in names],
                          t["triangles"], template=reg.template, neutral=neutral, overwrite=overwrite)
@@ -75,16 +132,20 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
         scene = None
         jobs = [(n, cam) for n in names for cam in cams]
         it = bar(jobs, progress, desc="build", unit="field")
-        geometry = {}
+        placed = None
         for name, cam in it:
-            r = reg.expression(name)
-            if name not in geometry:
-                geometry[name] = r
+            r = geometry[name]
+            if name != placed:
+                placed = name
                 if scene is None:
                     scene = MeshScene(r.vertices, t["triangles"])
                 scene.set_vertices(r.vertices)
             hits, _ = scene.render_hits(cam, spp=1)
             sel = np.flatnonzero(hits.valid)
+            if exts:    # texels per extension (the report)
+                per = np.bincount(tri_ext[hits.tri[sel]] + 1, minlength=len(exts) + 1)[1:]
+                for k, ext in enumerate(exts):
+                    ext_report[ext.name]["texels"] += int(per[k])
             field = reg.field(name, cam.name)  # (L, H, W, 3)
             check_field(field, name, cam.name, lambda light: reg.capture.image_path(name, cam.name, light))
             rows, cols = sel // cam.width, sel % cam.width
@@ -100,6 +161,8 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
         visibility = part_visibility(reg, names, reg.template, t["triangles"], cams)
         references = choose_references(visibility)
         sources = part_sources(visibility, references)
+        if ext_report:
+            writer.extra["extensions"] = ext_report
         writer.extra["references"] = references
         writer.extra["part_sources"] = sources
         writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, sources,

@@ -16,7 +16,10 @@ Written into the capture folder (never into ``truth/``)::
     CAPTURE/hand/rotoscope/<expression>.json  polylines, marked points, where the eyes look
 
 Formats: docs/registration.md. Only the neutral's truth enters ``template.json``; every
-other expression contributes only clicks (coarse points, rotoscoped curves and points).
+other expression contributes only clicks (coarse points, rotoscoped curves and points). The template's
+extensions (scalp, ears, neck; :mod:`.template_extensions`) are placed like every other vertex, from
+clicks drawn apart from the face's (the face's hand inputs do not depend on them);
+:func:`rewrite_template` gives an existing capture a template with (or without) them.
 """
 from __future__ import annotations
 
@@ -210,10 +213,17 @@ def make_hand_inputs(cap_dir: str | os.PathLike, template: dict, truths: list[Tr
     kinds = [v["kind"] for v in template["vertices"]]
     vnames = [v.get("name", "") for v in template["vertices"]]
 
-    # ---- template: every vertex placed by the user on the neutral
+    # ---- template: every vertex placed by the user on the neutral (the extensions' with clicks of their own,
+    # so the face's hand inputs are the same with or without them)
     T = np.asarray(tn.template_vertices, np.float64)
-    vis = _visibility(rig, tn, T)
-    placed = _place(rig, T, vis, rng, click_sigma)
+    ext = np.zeros(len(T), bool)
+    for e in (template.get("extensions") or {}).values():
+        ext[np.asarray(e["vertices"], np.int64)] = True
+    placed = np.empty_like(T)
+    placed[~ext] = _place(rig, T[~ext], _visibility(rig, tn, T[~ext]), rng, click_sigma)
+    if ext.any():
+        placed[ext] = _place(rig, T[ext], _visibility(rig, tn, T[ext]), np.random.default_rng(seed + 8112),
+                             click_sigma)
     tpl = json.loads(json.dumps(template))
     for v, p in zip(tpl["vertices"], placed):
         v["position"] = np.round(p, 7).tolist()
@@ -309,13 +319,9 @@ def iris_of(part_transform: np.ndarray, rest_centre) -> tuple:
     return centre, g, r * np.sin(beta)
 
 
-def write_hand_inputs(cap_dir, subject, expressions, poses, rig: Rig, seed: int = 0,
-                      click_sigma: float = CLICK_SIGMA) -> Path:
-    """The synthetic user's hand inputs for a synthesised capture (called by ``mifacerf synth``).
-
-    ``expressions``: the subject's ``Expression(name, category, params)``; ``poses[name]`` its
-    ``Pose``. Only the neutral's truth enters the template; every expression gets clicks.
-    """
+def _user_template(subject) -> dict:
+    """``subject.template`` as the JSON dict the synthetic user writes (lower-teeth mark, iris sizes, dot
+    radius added), positions still the neutral's truth."""
     from . import parts as PT
 
     template = json.loads(subject.template.to_json())
@@ -328,31 +334,87 @@ def write_hand_inputs(cap_dir, subject, expressions, poses, rig: Rig, seed: int 
         eye["iris_radius"] = r * float(np.sin(beta))
         eye["iris_depth"] = r * float(np.cos(beta))
     template["dot_radius"] = float(getattr(subject, "dot_radius", 0.0015))
+    return template
+
+
+def _truth_expression(subject, e, pose, lower: dict | None) -> TruthExpression:
+    """What the synthetic user looks at in expression ``e`` (its ``pose``)."""
+    occluders = [(pose.skin_vertices, subject.skin_faces)]
+    for name in ("teeth_upper", "teeth_lower"):   # eyeballs left out: the lids rest on them
+        if name in pose.parts:
+            occluders.append((pose.parts[name].vertices, pose.parts[name].faces))
+    Vs, Fs, off = [], [], 0
+    for V, F in occluders:
+        Vs.append(np.asarray(V, np.float64))
+        Fs.append(np.asarray(F, np.int64) + off)
+        off += len(V)
+    irises = {}
+    for name, side in (("eye_left", "L"), ("eye_right", "R")):
+        if name in pose.parts and pose.parts[name].transform is not None:
+            irises[side] = iris_of(pose.parts[name].transform, subject.eye_centres[name])
+    ltp = None
+    if lower is not None and "teeth_lower" in pose.parts:
+        T = pose.parts["teeth_lower"].transform
+        p = np.asarray(subject.template.teeth["lower"]["vertices"], np.float64)[lower["mark"]]
+        ltp = T[:3, :3] @ p + T[:3, 3]
     ctrl = list(getattr(subject, "control_names", []))
-    truths = []
-    for e in expressions:
-        pose = poses[e.name]
-        occluders = [(pose.skin_vertices, subject.skin_faces)]
-        for name in ("teeth_upper", "teeth_lower"):   # eyeballs left out: the lids rest on them
-            if name in pose.parts:
-                occluders.append((pose.parts[name].vertices, pose.parts[name].faces))
-        Vs, Fs, off = [], [], 0
-        for V, F in occluders:
-            Vs.append(np.asarray(V, np.float64))
-            Fs.append(np.asarray(F, np.int64) + off)
-            off += len(V)
-        irises = {}
-        for name, side in (("eye_left", "L"), ("eye_right", "R")):
-            if name in pose.parts and pose.parts[name].transform is not None:
-                irises[side] = iris_of(pose.parts[name].transform, subject.eye_centres[name])
-        ltp = None
-        if lower is not None and "teeth_lower" in pose.parts:
-            T = pose.parts["teeth_lower"].transform
-            p = np.asarray(subject.template.teeth["lower"]["vertices"], np.float64)[lower["mark"]]
-            ltp = T[:3, :3] @ p + T[:3, 3]
-        gaze = [abs(float(e.params[ctrl.index(k)])) for k in ("gaze_yaw", "gaze_pitch") if k in ctrl]
-        look = "forward" if gaze and max(gaze) < 1e-6 else None
-        truths.append(TruthExpression(e.name, np.asarray(pose.template_vertices, np.float64),
-                                      (np.concatenate(Vs), np.concatenate(Fs)), irises, ltp, look))
+    gaze = [abs(float(e.params[ctrl.index(k)])) for k in ("gaze_yaw", "gaze_pitch") if k in ctrl]
+    look = "forward" if gaze and max(gaze) < 1e-6 else None
+    return TruthExpression(e.name, np.asarray(pose.template_vertices, np.float64),
+                           (np.concatenate(Vs), np.concatenate(Fs)), irises, ltp, look)
+
+
+def write_hand_inputs(cap_dir, subject, expressions, poses, rig: Rig, seed: int = 0,
+                      click_sigma: float = CLICK_SIGMA) -> Path:
+    """The synthetic user's hand inputs for a synthesised capture (called by ``mifacerf synth``).
+
+    ``expressions``: the subject's ``Expression(name, category, params)``; ``poses[name]`` its
+    ``Pose``. Only the neutral's truth enters the template; every expression gets clicks.
+    """
+    template = _user_template(subject)
+    lower = (template.get("teeth") or {}).get("lower")
+    truths = [_truth_expression(subject, e, poses[e.name], lower) for e in expressions]
     neutral = next((e.name for e in expressions if e.category == "neutral"), expressions[0].name)
     return make_hand_inputs(cap_dir, template, truths, rig, seed=seed, click_sigma=click_sigma, neutral=neutral)
+
+
+def rewrite_template(cap_dir, subject, rig: Rig, seed: int = 0, click_sigma: float = CLICK_SIGMA) -> Path:
+    """Rewrite ``CAP_DIR/hand/template.json`` for ``subject.template`` (the procedural subject's, with or
+    without extensions, e.g. another neck cut), keeping what the user placed in the existing file — every
+    face vertex, the teeth strips, the eyes — and placing the new template's extension vertices on the
+    neutral's truth with the clicks :func:`make_hand_inputs` draws for them. Coarse points and rotoscoping
+    (face vertex ids) stay valid. Returns the file."""
+    from .expressions import default_params
+    from .presets import Expression
+
+    path = Path(cap_dir) / "hand" / "template.json"
+    old = json.loads(path.read_text())
+    new = _user_template(subject)
+    n_old, ext_new = len(old["vertices"]), np.zeros(len(new["vertices"]), bool)
+    for e in (new.get("extensions") or {}).values():
+        ext_new[np.asarray(e["vertices"], np.int64)] = True
+    old_ext = np.zeros(n_old, bool)
+    for e in (old.get("extensions") or {}).values():
+        old_ext[np.asarray(e["vertices"], np.int64)] = True
+    face_old = [v for v, x in zip(old["vertices"], old_ext) if not x]
+    face_new = [v for v, x in zip(new["vertices"], ext_new) if not x]
+    if [(v["kind"], v.get("name", "")) for v in face_old] != [(v["kind"], v.get("name", "")) for v in face_new] or \
+            old_ext.any() and not (np.flatnonzero(~old_ext) == np.arange(len(face_old))).all():
+        raise ValueError(f"{path}: its face vertices are not the subject template's (kinds/names differ): "
+                         "this capture was made from another subject or template")
+    for v, o in zip(face_new, face_old):
+        v["position"] = o["position"]
+    for key in ("teeth", "eyes", "dot_radius"):
+        if key in old:
+            new[key] = old[key]
+    if ext_new.any():
+        pose = subject.pose(default_params(), textures=False)
+        truth = _truth_expression(subject, Expression("neutral", "neutral", default_params()), pose,
+                                  (new.get("teeth") or {}).get("lower"))
+        X = truth.template_vertices[ext_new]
+        placed = _place(rig, X, _visibility(rig, truth, X), np.random.default_rng(seed + 8112), click_sigma)
+        for v, p in zip(np.asarray(new["vertices"], object)[ext_new], placed):
+            v["position"] = np.round(p, 7).tolist()
+    new["made_by"] = old.get("made_by", "mifacerf synthetic user (truth of the neutral + ~1 px clicking error)")
+    write_json_atomic(path, new)
+    return path

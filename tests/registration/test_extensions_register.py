@@ -1,0 +1,138 @@
+"""Template extensions wired into registration and build (issue 16 item 2): declarations read from the
+template, placement per expression with its report, bad input refused before any work."""
+import json
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from mifacerf.geometry.rigid import apply, homogeneous
+from mifacerf.registration.extensions import Extension, extensions_from_template
+from mifacerf.registration.register import Expr, Registrar
+
+
+def _strip():
+    """The toy strip of test_extensions.py: face vertices 0-2 / 6-8 (fiducials), extension 3-5 / 9-11."""
+    xs = np.array([0.0, 0.025, 0.05, 0.1, 0.15, 0.2])
+    top = np.stack([xs, np.zeros(6), np.zeros(6)], 1)
+    X = np.concatenate([top, top + [0, 0.01, 0.002]])
+    F = np.array([[i, i + 1, i + 6] for i in range(5)] + [[i + 1, i + 7, i + 6] for i in range(5)])
+    return X, F, np.array([0, 1, 2, 6, 7, 8]), np.array([3, 4, 5, 9, 10, 11])
+
+
+def _registrar(X, F, fid, exts, neutral_V=None):
+    r = Registrar.__new__(Registrar)
+    r.tpl = SimpleNamespace(vertices=X, triangles=F)
+    r.dots, r.extensions, r.neutral = fid, exts, "neutral"
+    r.is_extension = np.zeros(len(X), bool)
+    for e in exts:
+        r.is_extension[e.vertices] = True
+    V = X if neutral_V is None else neutral_V
+    r.registered = {"neutral": SimpleNamespace(vertices=V, status=np.ones(len(X), np.int8))}
+    return r
+
+
+def test_declarations_read_and_refused():
+    d = {"vertices": [{}] * 12, "extensions": {"cap": {"vertices": [3, 4], "mode": "rigid"},
+                                               "neck": {"vertices": [5], "mode": "driven", "falloff": 0.05,
+                                                        "anchor": "body"}}}
+    ex = extensions_from_template(d)
+    assert [(e.name, e.mode, e.anchor, e.falloff) for e in ex] == [("cap", "rigid", "head", 0.03),
+                                                                    ("neck", "driven", "body", 0.05)]
+    assert extensions_from_template({"vertices": []}) == []
+    for bad, msg in (({"a": {"vertices": [3], "anchor": "shoulder"}}, "unknown anchor 'shoulder'"),
+                     ({"a": {"vertices": [12]}}, r"extension 'a': vertex ids outside \[0, 12\)"),
+                     ({"a": {"vertices": []}}, "extension 'a' has no vertices"),
+                     ({"a": {"vertices": [3]}, "b": {"vertices": [3]}}, r"vertex 3 is in two extensions \('a' and 'b'\)"),
+                     ({"a": {"mode": "rigid"}}, "extension 'a': needs 'vertices'")):
+        with pytest.raises(ValueError, match=msg):
+            extensions_from_template({"vertices": [{}] * 12, "extensions": bad})
+
+
+def test_an_expression_places_its_extensions_with_the_head_and_reports_them():
+    X, F, fid, ext = _strip()
+    r = _registrar(X, F, fid, [Extension("scalp", ext[:3], "rigid"), Extension("neck", ext[3:], "driven",
+                                                                                    falloff=0.02, anchor="body")])
+    T = homogeneous(np.eye(3), np.array([0.0, 0.0, 0.01]))
+    V = X.copy()
+    V[fid] = apply(T, X[fid])
+    status = np.zeros(len(X), np.int8)
+    status[fid] = 1
+    e = Expr("smile", report={"head_pose": {"source": "ear and nose-bridge points"}})
+    r.place_extension_vertices("smile", V, status, T, e)
+    assert np.allclose(V[ext[:3]], apply(T, X[ext[:3]]))              # rigid with the head
+    assert (status[ext] == 1).all()
+    rep = e.report["extensions"]
+    assert rep["extensions"]["scalp"] == {"mode": "rigid", "anchor": "head", "vertices": 3}
+    # the neck's far vertices have no fiducial within 20 mm: rigid with the body (where the template has them)
+    assert rep["extensions"]["neck"]["mode"] == "rigid" and "rigid with the body" in rep["fallbacks"][0]
+    assert np.allclose(V[ext[3:]], X[ext[3:]]) and e.flags == rep["fallbacks"]
+
+
+def test_a_predicted_head_pose_leaves_the_extensions_predicted():
+    X, F, fid, ext = _strip()
+    r = _registrar(X, F, fid, [Extension("scalp", ext, "rigid")])
+    V, status = X.copy(), np.zeros(len(X), np.int8)
+    status[fid] = 1
+    e = Expr("x", report={"head_pose": {"source": "none (identity, predicted)"}})
+    r.place_extension_vertices("x", V, status, np.eye(4), e)
+    assert (status[ext] == 0).all()
+
+
+def _fake_registration(X, F, exts, visible, reports=None):
+    tpl = {"vertices": [{"kind": "dot" if i < 3 or 6 <= i < 9 else "extension", "position": list(p)}
+                        for i, p in enumerate(X)],
+           "triangles": F.tolist(), "extensions": exts}
+    reg = SimpleNamespace(template=tpl, root=__import__("pathlib").Path("/nowhere"),
+                          report=lambda n: (reports or {}).get(n, {}))
+    geo = {"neutral": SimpleNamespace(vertices=X, visible=visible)}
+    return reg, geo
+
+
+def test_build_leaves_out_an_extension_no_camera_sees_and_refuses_a_gap():
+    from mifacerf.formats.registration import RegistrationError
+    from mifacerf.rendering.build import extension_report, template_arrays
+
+    X, F, fid, ext = _strip()
+    vis = np.ones((2, len(X)), bool)
+    vis[:, [5, 11]] = False
+    exts = {"near": {"vertices": [3, 4, 9, 10], "mode": "rigid"}, "far": {"vertices": [5, 11], "mode": "rigid"}}
+    reports = {"neutral": {"extensions": {"fallbacks": ["extension 'near': no registered fiducial within 30 mm"]}}}
+    reg, geo = _fake_registration(X, F, exts, vis, reports)
+    t = template_arrays(reg.template)
+    with pytest.warns(UserWarning, match="extension 'far': no capture camera sees it in any expression"):
+        _, rep, keep = extension_report(reg, ["neutral"], geo, t, [0, 1])
+    assert rep["far"]["status"].startswith("left out") and rep["far"]["triangles"] == 0
+    assert rep["near"]["status"] == "built" and rep["near"]["registration_fallbacks"] == [
+        "neutral: extension 'near': no registered fiducial within 30 mm"]
+    assert not keep[F.tolist().index([5, 11, 10])] and keep.sum() == len(F) - 1   # the one triangle it owns
+    # a detached extension (its triangles join no face vertex) is an error naming it
+    X2 = np.concatenate([X, X[[3, 4, 9]] + [0, 0, 0.05]])
+    F2 = np.concatenate([F, [[12, 13, 14]]])
+    reg, geo = _fake_registration(X2, F2, {"float": {"vertices": [12, 13, 14]}}, np.ones((2, 15), bool))
+    with pytest.raises(RegistrationError, match=r"extension 'float' is not attached to the face.*gap 49\.0 mm"):
+        extension_report(reg, ["neutral"], geo, template_arrays(reg.template), [0, 1])
+
+
+@pytest.mark.slow
+def test_registration_refuses_a_detached_extension_before_any_work(toy_capture, tmp_path):
+    from mifacerf.registration.hand import read_hand_inputs
+    from mifacerf.registration.register import RegistrationInputError, register_capture
+    from mifacerf.formats.capture import Capture
+
+    cap, _ = toy_capture
+    hand = read_hand_inputs(cap, Capture(cap).camera_names)
+    d = hand.template.to_dict()
+    n = len(d["vertices"])
+    P = np.asarray(d["vertices"][0]["position"])
+    d["vertices"] = d["vertices"] + [{"kind": "extension", "position": (P + [0.0, 0.0, 0.03 + 0.01 * k]).tolist()}
+                                     for k in range(3)]
+    d["triangles"] = d["triangles"] + [[n, n + 1, n + 2]]
+    d["extensions"] = {"cap": {"vertices": [n, n + 1, n + 2], "mode": "rigid"}}
+    from mifacerf.registration.hand import Template
+
+    hand.template = Template.from_dict(d)
+    with pytest.raises(RegistrationInputError, match=r"template.json: extension 'cap' is not attached to the face"):
+        Registrar(Capture(cap), tmp_path / "reg", hand=hand)
+    assert not (tmp_path / "reg").exists()
