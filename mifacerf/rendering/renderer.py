@@ -103,7 +103,8 @@ class Renderer:
 
     ``depth_tolerance`` (m): how far behind a field's seen surface a point may lie and
     still count as visible in that field. ``method``: how fields are stored and lit, a
-    :data:`.compression.COMPRESSION_METHODS` name (``exact``, or ``pca`` with ``rank`` coefficients);
+    :data:`.compression.COMPRESSION_METHODS` name (``exact``, ``pca`` with ``rank`` coefficients, or ``sh``
+    with spherical harmonics of order ``rank``);
     ``basis``: the environment → light-stage rule, a :data:`mifacerf.environment.LIGHT_BASIS_METHODS`
     name (``voronoi``).
     """
@@ -136,6 +137,7 @@ class Renderer:
         self._combined = CombinedScene(neutral, model.triangles, meshes) if meshes else None
         self._margins = margin_ids(model.template)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
+        self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}
 
     # -------------------------------------------------------------- lighting
@@ -158,15 +160,19 @@ class Renderer:
         model = self.model
         stats = stats if stats is not None else RenderStats()
         t0 = time.perf_counter()
-        basis = self.light_basis(env)
+        rotate = self.compression.lighting
+        if rotate is None:       # the light stage's basis, rotated per (vertex, source) (lighting.py)
+            basis = self.light_basis(env)
+            rotate = lambda _renderer, _env, R: basis.rotated(R)  # noqa: E731
         lighting = {}
         for s in plan.sources:
             used = plan.expression_weights[:, s] > 0
-            L = np.zeros((model.n_vertices, len(self.light_directions), 3), np.float32)
-            L[used] = basis.rotated(plan.rotations[s][used])
+            rows = rotate(self, env, plan.rotations[s][used])
+            L = np.zeros((model.n_vertices, rows.shape[1], 3), np.float32)
+            L[used] = rows
             lighting[s] = L
         keep = None
-        if self.light_epsilon > 0 and lighting:
+        if self.light_epsilon > 0 and lighting and self.compression.lighting is None:
             peak = np.max([np.abs(L).max(axis=(0, 2)) for L in lighting.values()], axis=0)  # (L,)
             kept = np.flatnonzero(peak >= self.light_epsilon * peak.max())
             if len(kept) < len(peak):
@@ -299,9 +305,10 @@ class Renderer:
         else:
             self._scene.set_vertices(plan.target)
             scene = self._scene
-        hits, uv = scene.render_hits(camera, spp, seed)
+        uv, origin, dirs = self._camera_rays(camera, spp, seed)
+        hits = scene.trace(origin, dirs, cull_back=True)   # as MeshScene.render_hits, the rays kept
         if use_parts:
-            self._parts_inside_skin(hits, uv, camera, plan.target)
+            self._parts_inside_skin(hits, uv, camera, plan.target, dirs)
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
         on_skin = hits.tri[idx] < n_skin_tri
@@ -328,8 +335,7 @@ class Renderer:
             pt = np.flatnonzero(~on_skin)
             tri = hits.tri[idx[pt]]
             label = self._combined.label[tri] - 1
-            o, d = camera.pixel_rays(uv[idx[pt]])
-            p_world = o + hits.t[idx[pt], None] * d
+            p_world = origin + hits.t[idx[pt], None] * dirs[idx[pt]]
             q = np.empty_like(p_world)
             normal = np.empty_like(p_world)
             fn = self._combined.scene.face_normals()[tri]
@@ -374,18 +380,47 @@ class Renderer:
         return out
 
 
-    def _parts_inside_skin(self, hits, uv: np.ndarray, camera: Camera, target: np.ndarray) -> None:
+    def _camera_rays(self, camera: Camera, spp: int, seed: int):
+        """The camera's sample positions (H*W*spp, 2), centre (3,) and unit ray directions (H*W*spp, 3), as
+        :meth:`.MeshScene.render_hits` makes them; kept for the last few cameras (an animation's camera is
+        undistorted once), the undistorted image plane per intrinsics (a moving camera reuses it)."""
+        from ..camera import stratified_pixel_samples
+
+        cache = self.method_cache.setdefault("rays", {})
+        intrinsics = (camera.width, camera.height, spp, seed, camera.K.tobytes(), np.asarray(camera.dist).tobytes())
+        if intrinsics not in cache:
+            if spp == 1:
+                jj, ii = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+                uv = np.stack([jj, ii], -1).reshape(-1, 2).astype(np.float64)
+            else:
+                uv = stratified_pixel_samples(camera.width, camera.height, spp, seed)
+            xn = camera.undistort_pixels(uv)
+            if len(cache) >= 4:
+                cache.pop(next(iter(cache)))
+            cache[intrinsics] = (uv, np.concatenate([xn, np.ones((len(xn), 1))], axis=1), {})
+        uv, d_cam, posed = cache[intrinsics]
+        pose = camera.R.tobytes()
+        if pose not in posed:
+            d = d_cam @ camera.R  # as Camera.pixel_rays: R.T @ d_cam for each row
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            posed.clear()
+            posed[pose] = d
+        return uv, camera.centre, posed[pose]
+
+    def _parts_inside_skin(self, hits, uv: np.ndarray, camera: Camera, target: np.ndarray,
+                           directions: np.ndarray | None = None) -> None:
         """Eyes, teeth and the mouth's backdrop belong inside the skin: a camera sample that meets a part first
         and then, right behind it, the *front* of the skin (the part pokes out through the cheek or a lid —
         the target's part transforms are estimates) shows that skin instead. Through the mouth or lid
         opening the skin behind a part is seen from inside (back-facing) and the part stays. Updates the
-        combined scene's ``hits`` (H*W*spp samples) in place."""
+        combined scene's ``hits`` (H*W*spp samples) in place; ``directions``: the samples' rays (H*W*spp, 3),
+        made from ``uv`` when not given."""
         n_skin_tri = len(self.model.triangles)
         part = np.flatnonzero(hits.valid & (hits.tri >= n_skin_tri))
         if part.size == 0:
             return
         self._scene.set_vertices(target)
-        o, d = camera.pixel_rays(uv[part])
+        o, d = camera.pixel_rays(uv[part]) if directions is None else (camera.centre, directions[part])
         start = hits.t[part] + 1e-5
         behind = self._scene.trace(o + start[:, None] * d, d, cull_back=False)
         ok = behind.valid
