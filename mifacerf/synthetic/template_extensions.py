@@ -158,9 +158,13 @@ def _poisson(P, order, radius, blocked) -> np.ndarray:
     return np.asarray(taken, np.int64)
 
 
-def _loops(directed):
-    """Simple loops of directed boundary edges: the boundary walked edge by edge (every vertex has as many
-    boundary edges out as in), each closed walk split at the vertices it passes twice (pinches)."""
+def boundary_loops(F) -> list:
+    """Simple boundary loops (vertex ids in the faces' winding order) of a triangle mesh ``F`` (M, 3): the
+    boundary walked edge by edge, each closed walk split at the vertices it passes twice (where loops
+    touch or a boundary is pinched)."""
+    F = np.asarray(F, np.int64).reshape(-1, 3)
+    dset = {(int(a), int(b)) for a, b in np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])}
+    directed = [(a, b) for a, b in dset if (b, a) not in dset]
     out = {}
     for a, b in directed:
         out.setdefault(int(a), []).append(int(b))
@@ -249,11 +253,7 @@ def _clean(P3, face_tri, ext_tri, holes, max_hole: int, max_perimeter: float, on
         E = E[~tri_bad]
     hole_sets = [set(int(v) for v in loop) for loop in (holes or {}).values()]
     filled = 0
-    allt = np.concatenate([F, E])
-    d = np.concatenate([allt[:, [0, 1]], allt[:, [1, 2]], allt[:, [2, 0]]])
-    dset = {(int(a), int(b)) for a, b in d}
-    bnd = [(a, b) for a, b in dset if (b, a) not in dset]
-    loops = _loops(bnd)
+    loops = boundary_loops(np.concatenate([F, E]))
     on_rim = np.zeros(len(P3), bool) if on_rim is None else on_rim
     if loops:
         new = []

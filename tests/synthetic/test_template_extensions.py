@@ -6,20 +6,13 @@ import pytest
 
 from mifacerf.synthetic import Template, default_subject
 from mifacerf.synthetic.template import build_template
-from mifacerf.synthetic.template_extensions import NECK_CUT_Y, extension_mesh, face_covered
+from mifacerf.synthetic.template_extensions import NECK_CUT_Y, boundary_loops, extension_mesh, face_covered
 from mifacerf.registration.extensions import check_extensions, extensions_from_template
 
 
 @pytest.fixture(scope="module")
 def subj():
     return default_subject()
-
-
-def _boundary_loops(T):
-    from mifacerf.synthetic.template_extensions import _loops
-
-    d = {(int(a), int(b)) for t in T for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))}
-    return _loops([(a, b) for a, b in d if (b, a) not in d])
 
 
 def test_extensions_cover_the_head_and_close_on_the_face(subj):
@@ -36,7 +29,7 @@ def test_extensions_cover_the_head_and_close_on_the_face(subj):
     assert P[:, 1].max() > 0.11 and P[:, 1].min() == pytest.approx(NECK_CUT_Y, abs=0.004)  # crown .. cut
     assert P[:, 2].min() < -0.1                                   # the back of the head
     # no gap: the only boundary loops are the mouth, the eyes and the neck cut
-    loops = _boundary_loops(np.asarray(t.triangles))
+    loops = boundary_loops(t.triangles)
     holes = [set(map(int, h)) for h in t.holes.values()]
     other = [lp for lp in loops if set(lp) not in holes]
     assert len(other) == 1 and np.abs(t.neutral[other[0], 1] - NECK_CUT_Y).max() < 0.006
