@@ -165,7 +165,7 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
 
     def prepare(self, scene, sensor):
         """Plan and light the frame for ``sensor`` (called by :meth:`render`)."""
-        from mifacerf.rendering.renderer import RenderStats
+        from mifacerf.rendering.renderer import RenderStats, view_checks
         from mifacerf.rendering.sensors import camera_from_sensor
         from mifacerf.rendering.chunks import plan_frame
         from mifacerf.rendering.parts import PARTS
@@ -177,6 +177,8 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         pose = shape.pose_state
         camera = camera_from_sensor(sensor)
         self.stats = RenderStats()
+        # a view far from every capture camera, a collapsed target: warned (RenderWarning), as in Renderer.render
+        view_checks(pose.target, camera, face.model.cameras, self.stats)
         plan = plan_frame(face.model, pose.target, pose.weights, camera)
         env = _environment_of(scene, self.env_spec)
         self.frame = renderer.light_frame(plan, env, self.stats)

@@ -28,6 +28,7 @@ import socket
 import tempfile
 import threading
 import time
+import weakref
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -422,3 +423,95 @@ def repair_if_needed(target: str | os.PathLike, marker: str, error: type[Excepti
     deadline = time.monotonic() + settle_s
     while not (target / marker).exists() and time.monotonic() < deadline:
         time.sleep(0.05)
+
+
+def link_tree(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """``dst`` (absent, or an empty folder) gets ``src`` (a file or a folder tree) as hard links, copies
+    where links fail; the two then share every file's inode, so writing a file of ``dst`` by rename (the
+    atomic writer) leaves ``src``'s untouched."""
+    import shutil
+
+    src, dst = Path(src), Path(dst)
+    if src.is_file():
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(src, dst)
+        except OSError:
+            shutil.copy2(src, dst)
+        return
+    dst.mkdir(parents=True, exist_ok=True)
+    for p in sorted(src.iterdir()):
+        link_tree(p, dst / p.name)
+
+
+def _discard(root: Path, lock: "FolderLock") -> None:
+    import shutil
+
+    shutil.rmtree(root, ignore_errors=True)
+    lock.release()
+
+
+class OutputFolder:
+    """A command's output folder written as one transaction (``mifacerf drive``, ``mifacerf track``).
+
+    Construction takes the folder's lock (``wait``: see :class:`FolderLock`; False refuses at once,
+    exit 3), finishes or undoes an interrupted swap (:func:`repair_swap`), refuses a folder that holds
+    files but no ``marker`` (it is not this command's output: never replaced), and makes :attr:`root`,
+    a ``.<name>.building-*`` folder beside ``target`` that the command writes into. :meth:`finish`
+    (once ``marker`` is written) hard-links into it the entries of the previous folder that ``carry(name)``
+    keeps (another command's output inside this one) and swaps it in (:func:`swap_in`): killed, failed or
+    out of space at any moment, ``target`` is the previous complete folder or the new one. :meth:`abort`
+    — or a failure inside ``with OutputFolder(...)``, or the object being dropped unfinished — deletes
+    the new folder and releases the lock.
+    """
+
+    def __init__(self, target: str | os.PathLike, marker: str, error: type[Exception] = OSError,
+                 what: str = "run", wait: bool | float = False, carry=None, log=None):
+        self.target = Path(os.path.abspath(target))
+        self.marker, self.error, self.what, self.carry = marker, error, what, carry
+        lock = FolderLock(self.target, error, wait=wait, log=log, what=what).acquire()
+        try:
+            repair_swap(self.target, marker)
+            if self.target.exists() and not self.target.is_dir():
+                raise error(f"{self.target}: not a folder")
+            if self.target.is_dir() and not (self.target / marker).exists() and \
+                    any(not n.startswith(".") for n in os.listdir(self.target)):
+                raise error(f"{self.target}: holds files but no {marker}, so it is not a {what} folder; refusing "
+                            "to replace it (choose a new or empty folder)")
+            self.root = new_building_dir(self.target)
+        except BaseException:
+            lock.release()
+            raise
+        self._lock = lock
+        self._finalizer = weakref.finalize(self, _discard, self.root, lock)
+
+    def finish(self) -> Path:
+        """Swap the new folder in (the lock is released); returns ``target``."""
+        if not self._finalizer.alive:
+            raise self.error(f"{self.target}: this {self.what} was already finished or aborted")
+        try:
+            if not (self.root / self.marker).exists():
+                raise self.error(f"{self.root / self.marker}: not written; the new {self.what} folder is "
+                                 "incomplete and is not swapped in")
+            if self.carry is not None and self.target.is_dir():
+                for name in sorted(os.listdir(self.target)):
+                    if not name.startswith(".") and self.carry(name) and not (self.root / name).exists():
+                        link_tree(self.target / name, self.root / name)
+            swap_in(self.target, self.root, self.marker)
+        except BaseException:
+            self.abort()
+            raise
+        self._finalizer.detach()
+        self._lock.release()
+        return self.target
+
+    def abort(self) -> None:
+        """Delete the new folder (the previous one stays) and release the lock."""
+        self._finalizer()
+
+    def __enter__(self) -> "OutputFolder":
+        return self
+
+    def __exit__(self, exc_type, *exc) -> None:
+        if exc_type is not None:
+            self.abort()

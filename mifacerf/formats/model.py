@@ -60,7 +60,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import MifacerfError
-from .files import (FolderLock, check_entry, file_entry, new_building_dir, read_json_manifest,
+from .files import (FolderLock, check_entry, file_entry, link_tree, new_building_dir, read_json_manifest,
                     repair_if_needed, repair_swap, require_keys, save_npy_atomic, save_npz_atomic, swap_in,
                     verify_entries, write_json_atomic)
 
@@ -419,22 +419,6 @@ class ModelUpdate:
         self._updates.append(fn)
 
 
-def _link_tree(src: Path, dst: Path) -> None:
-    """``dst`` (an empty folder) gets every file of ``src`` as a hard link (a copy where links fail)."""
-    import shutil
-
-    for p in sorted(src.rglob("*")):
-        q = dst / p.relative_to(src)
-        if p.is_dir():
-            q.mkdir(parents=True, exist_ok=True)
-            continue
-        q.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(p, q)
-        except OSError:
-            shutil.copy2(p, q)
-
-
 @contextmanager
 def update_model(model: ModelFolder, what: str = "model update", log=None):
     """``with update_model(model) as u:`` add files to a finished model as one transaction (compressed
@@ -452,7 +436,7 @@ def update_model(model: ModelFolder, what: str = "model update", log=None):
         meta = read_json_manifest(target / MARKER, FORMAT, READS, ModelError, "missing", "mifacerf model")
         building = new_building_dir(target)
         try:
-            _link_tree(target, building)
+            link_tree(target, building)
             u = ModelUpdate(building, meta)
             yield u
             for fn in u._updates:

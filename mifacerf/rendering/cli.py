@@ -59,6 +59,10 @@ def _inside(path, folders) -> str | None:
 @click.option("-t", "--threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all).")
 def render_cmd(scene_or_model, output, defines, spp, threads):
     """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
+    import os
+    import secrets
+
+    from ..formats.files import fsync_dir
     from .scenefile import render_scene_file
 
     if Path(scene_or_model).is_dir():
@@ -69,11 +73,21 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     bad = [d for d in defines if "=" not in d]
     if bad:
         raise click.BadParameter(f"expected NAME=VALUE, got {bad[0]!r}", param_hint="-D")
+    out = Path(output)
+    # the EXR and its PNG are written under temporary names beside OUTPUT and renamed over the old ones
+    # only once both are complete: a failed, killed or out-of-space render leaves the previous pair
+    tmp = out.parent / f".{out.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{out.suffix}"
     try:
-        out = render_scene_file(scene_or_model, output, dict(d.split("=", 1) for d in defines), spp=spp,
-                                threads=threads)
+        render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
+        if tmp.with_suffix(".png") != tmp:
+            os.replace(tmp.with_suffix(".png"), out.with_suffix(".png"))
+        os.replace(tmp, out)
+        fsync_dir(out.parent)
     except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
         raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
+    finally:
+        for p in (tmp, tmp.with_suffix(".png")):
+            p.unlink(missing_ok=True)
     click.echo(f"wrote {out}")
 
 

@@ -17,6 +17,11 @@ environment from one camera with the rendering API, composited over the environm
     <env>/performance.mp4            the composite as a video at the performance's frame rate
     strip.png                        a strip of frames per environment (an observer's rows above)
 
+The folder is one transaction (:class:`mifacerf.formats.files.OutputFolder`): written beside ``DRIVE``
+and swapped in complete, so a failed, killed or out-of-space drive leaves the previous one as it was;
+a second drive on the same folder is refused while one runs (exit 3), and a folder that holds files
+but no ``drive.json`` is never replaced.
+
 An ``observer`` (:class:`FrameObserver`) sees the weights and every rendered frame and adds entries
 to ``drive.json`` and rows to the strip; driving itself never reads the synthetic truth. The
 comparison with the path-traced truth (``mifacerf evaluate drive``) is such an observer,
@@ -31,9 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from ..execution import Executor, worker_cached
-from ..formats.files import write_json_atomic
+from ..formats.files import OutputFolder, write_json_atomic
 from .coherence import PixelCoherence, weight_summary
-from .track import Track
+from .track import Track, TrackError
 
 FORMAT = "mifacerf.drive"
 
@@ -178,15 +183,25 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
     the weights filtered over the whole span, one exposure per environment (its first frame's), the
     PNG/EXR frames, the coherence, the observer and one video. A run split over workers writes the same
     files as one process."""
+    tr = track if isinstance(track, Track) else Track(track)
+    target = Path(out) if out is not None else tr.root / "drive"
+    # one transaction: written beside the folder, swapped in when complete (a second drive on it: exit 3)
+    with OutputFolder(target, "drive.json", TrackError, what="drive") as output:
+        _drive(tr, model, output.root, envs, camera, size, spp, frames, exr, video, weight_sigma, progress, log,
+               observer, executor)
+        output.finish()
+    return target
+
+
+def _drive(tr, model, out, envs, camera, size, spp, frames, exr, video, weight_sigma, progress, log, observer,
+           executor) -> None:
+    """:func:`drive`'s work, written into ``out`` (the new folder, swapped in by the caller)."""
     from tqdm.auto import tqdm
 
     from ..imageio import to_srgb8, write_exr, write_png
     from ..rendering.api import composite, environment_plate, load_model
 
-    tr = track if isinstance(track, Track) else Track(track)
     face = model if hasattr(model, "renderer") else load_model(model)
-    out = Path(out) if out is not None else tr.root / "drive"
-    out.mkdir(parents=True, exist_ok=True)
     if frames is None:
         fl = list(range(tr.n_frames))
     elif isinstance(frames, (tuple, list)):
@@ -288,4 +303,3 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
         meta["strip"] = "strip.png"
         meta["strip_frames"] = sorted(int(p) for p in picks)
     write_json_atomic(out / "drive.json", meta)
-    return out

@@ -20,6 +20,12 @@ Writes ``TRACK/`` (default ``PERF/track``)::
                   head_pose (N, 4, 4)  neutral → frame
                   eyes (N, 2, 4, 4)    eyeball rest → world (left, right); gaze (N, 2, 3) world unit vectors
                   frame_seconds (N,)   tracking time per frame
+
+The folder is one transaction (:class:`mifacerf.formats.files.OutputFolder`): written beside ``TRACK``
+and swapped in complete (with whatever another command wrote inside the old one, e.g. ``TRACK/drive``,
+hard-linked over), so a failed, killed or out-of-space tracking leaves the previous track as it was; a
+second ``track`` on the same folder is refused while one runs (exit 3), and a folder that holds files but
+no ``track.json`` is never replaced. :class:`Track` finishes an interrupted swap when it opens one.
 """
 from __future__ import annotations
 
@@ -30,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..formats.files import write_json_atomic
+from ..formats.files import OutputFolder, repair_if_needed, write_json_atomic
 from ..registration.contours import propagate, rings
 from ..registration.hand import Template, read_hand_inputs
 from ..geometry.schaefer2006 import mls_affine
@@ -43,6 +49,7 @@ from ..errors import MifacerfError
 
 FORMAT = "mifacerf.track"
 VERSION = 1
+OWN = ("track.json", "track.npz")     #: what tracking writes (and overlay_F*.png): a new track replaces them
 
 
 class TrackError(MifacerfError, ValueError):
@@ -79,10 +86,26 @@ def _load_model(model):
 def track_performance(perf, out=None, model=None, options: Options | None = None, frames=None,
                       progress: bool = True, log=None) -> Path:
     """Track ``perf`` (a path or :class:`PerformanceFolder`); returns the track folder."""
+    perf = perf if isinstance(perf, PerformanceFolder) else PerformanceFolder(perf)
+    target = Path(out) if out is not None else perf.root / "track"
+    # one transaction, locked from the start (a second track on it: exit 3); what another command wrote
+    # inside (TRACK/drive) is kept
+    with OutputFolder(target, "track.json", TrackError, what="track",
+                      carry=lambda name: name not in OWN and not name.startswith("overlay_F")) as output:
+        meta = _track(perf, output.root, output.target, model, options, frames, progress)
+        output.finish()
+    if log:
+        log(f"tracked {meta['n_frames']} frames: {100 * meta['dots_tracked_per_frame']['mean']:.1f}% of dot-frames, "
+            f"{100 * meta['dots_tracked_whole_sequence']:.1f}% of dots throughout; "
+            f"{len(meta['camera_problems'])} camera problem(s)")
+    return target
+
+
+def _track(perf: PerformanceFolder, out: Path, target: Path, model, options, frames, progress) -> dict:
+    """:func:`track_performance`'s work, written into ``out`` (the new folder of ``target``); returns the
+    track.json it wrote."""
     from tqdm.auto import tqdm
 
-    perf = perf if isinstance(perf, PerformanceFolder) else PerformanceFolder(perf)
-    out = Path(out) if out is not None else perf.root / "track"
     opt = options or Options()
     model = _load_model(model)
     hand = read_hand_inputs(perf.root, perf.camera_names)
@@ -164,7 +187,6 @@ def track_performance(perf, out=None, model=None, options: Options | None = None
     eyes, gaze, eye_report = eye_tracks(head, eye_centres, keys["irises"], rotoscope, cams)
     finish_s = time.perf_counter() - t0
 
-    out.mkdir(parents=True, exist_ok=True)
     tmp = out / ".track.tmp.npz"
     np.savez_compressed(tmp, vertices=V, status=status, dots=X, dot_status=dst, dot_ids=dots,
                         uv=tracker.uv, reprojection=tracker.reproj, redetected=tracker.redetected,
@@ -182,7 +204,7 @@ def track_performance(perf, out=None, model=None, options: Options | None = None
     lost = [int(d) for d in np.flatnonzero(~whole)]
     meta = {
         "format": FORMAT, "version": VERSION,
-        "performance": os.path.relpath(perf.root.resolve(), out.resolve()),
+        "performance": os.path.relpath(perf.root.resolve(), target.resolve()),
         "reference": ref_src, "model": None if model is None else str(Path(model.root).resolve()),
         "n_frames": n, "fps": perf.fps, "cameras": names, "n_dots": D,
         "options": opt.to_dict(), "detector": tracker.detector.to_dict(), "init_frame": tracker.init_frame,
@@ -201,10 +223,7 @@ def track_performance(perf, out=None, model=None, options: Options | None = None
         "hand_input_problems": [p for p in hand.problems if "coarse_points" not in p],
     }
     write_json_atomic(out / "track.json", meta)
-    if log:
-        log(f"tracked {n} frames: {100 * meta['dots_tracked_per_frame']['mean']:.1f}% of dot-frames, "
-            f"{100 * meta['dots_tracked_whole_sequence']:.1f}% of dots throughout; {len(problems)} camera problem(s)")
-    return out
+    return meta
 
 
 def rotoscope_by_frame(rotoscope: dict) -> dict:
@@ -236,6 +255,7 @@ class Track:
 
     def __init__(self, root):
         self.root = Path(root)
+        repair_if_needed(self.root, "track.json", TrackError)
         p = self.root / "track.json"
         if not p.exists():
             raise TrackError(f"{p}: missing; run 'mifacerf track PERF' first")

@@ -1,8 +1,9 @@
 """Fault injection for the reliability tests: folder snapshots, a child process killed with SIGKILL at a
 chosen moment, an injected ENOSPC.
 
-``python tests/reliability/faults.py JOB ARGS_JSON KILL`` runs one job (``build``, ``register``,
-``compress`` or ``demo``, see :mod:`demo_stand_in`) in a child: KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
+``python tests/reliability/faults.py JOB ARGS_JSON KILL`` runs one job in a child (``build``, ``register``,
+``compress``; ``drive`` and ``demo`` with the stand-ins of :mod:`stand_ins`; ``output``: an OutputFolder
+of a few files). KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
 ``call:NAME:N[:FILTER]`` (SIGKILL itself just before the N-th call of ``os.NAME`` whose arguments contain
 FILTER, or ``WANTED!UNWANTED``: contain WANTED but not UNWANTED — a precise crash point between two
 renames). The child prints ``ready`` once imported.
@@ -98,7 +99,11 @@ def _main(job: str, args: dict, kill: str) -> None:
         from mifacerf.rendering.compression import compress_model
         from mifacerf.rendering.model import Model
     elif job == "demo":
-        from demo_stand_in import run_demo
+        from stand_ins import run_demo
+    elif job == "drive":
+        from stand_ins import run_drive
+    elif job == "output":
+        from mifacerf.formats.files import OutputFolder
     else:
         from mifacerf.registration import register_capture
         from mifacerf.variant import ensure_variant
@@ -114,6 +119,15 @@ def _main(job: str, args: dict, kill: str) -> None:
         compress_model(Model(args["model"]), args["ranks"], progress=False, method="pca")
     elif job == "demo":
         run_demo(**args)
+    elif job == "drive":
+        run_drive(**args)
+    elif job == "output":          # an OutputFolder of a few files, the old folder's 'keep*' entries carried
+        o = OutputFolder(args["target"], "done.json", what="test", carry=lambda name: name.startswith("keep"))
+        for rel, text in args["files"].items():
+            (o.root / rel).parent.mkdir(parents=True, exist_ok=True)
+            (o.root / rel).write_text(text)
+        (o.root / "done.json").write_text("{}")
+        o.finish()
     else:
         raise SystemExit(f"unknown job {job}")
     print("done", flush=True)

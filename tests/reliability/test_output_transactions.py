@@ -1,0 +1,231 @@
+"""The output folders of 'mifacerf drive' and 'mifacerf track' are transactions (formats.files.OutputFolder):
+written beside, swapped in complete, locked (a second run on one folder exits 3), never replacing a folder
+that is not theirs; a failure, a full disk or a SIGKILL at any moment leaves the previous complete folder or
+the new one. 'mifacerf render -o' writes its EXR and PNG complete before either replaces the old ones."""
+import errno
+import json
+import os
+import random
+import threading
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from mifacerf.errors import EXIT_REFUSED, RefusedError
+from mifacerf.formats.files import FolderLock, OutputFolder, repair_if_needed
+from mifacerf.tracking.track import TrackError
+
+from .faults import ENOSPC, killed, run_child, siblings, snapshot, start_child
+from .stand_ins import drive_state, make_track, run_drive
+
+
+@pytest.fixture
+def driven(tmp_path):
+    """(track folder, drive folder driven once with shade 0.5, its snapshot)."""
+    track = make_track(tmp_path / "track")
+    out = tmp_path / "drive"
+    run_drive(str(track), str(out))
+    return track, out, snapshot(out)
+
+
+def old_or_new(out, old):
+    """After the repair the next drive (or any reader) does first: the drive folder is byte-identical to
+    ``old`` ("old") or a complete newer drive ("new")."""
+    repair_if_needed(out, "drive.json", TrackError)
+    assert siblings(out) == [], siblings(out)
+    if snapshot(out) == old:
+        return "old"
+    drive_state(out)
+    return "new"
+
+
+def test_a_failed_drive_keeps_the_previous_one(driven):
+    track, out, old = driven
+    with pytest.raises(RuntimeError, match="injected failure rendering frame 3"):
+        run_drive(str(track), str(out), fail_at=3, shade=0.9)
+    assert snapshot(out) == old and siblings(out) == []       # frames 0-2 were not overwritten
+    run_drive(str(track), str(out), shade=0.9)                # and the lock was released
+    assert old_or_new(out, old) == "new"
+
+
+@pytest.mark.parametrize("nth", [1, 6])
+def test_a_full_disk_during_drive_keeps_the_previous_one(driven, monkeypatch, nth):
+    track, out, old = driven
+    monkeypatch.setattr(os, "fsync", ENOSPC(nth))
+    with pytest.raises(OSError) as exc:
+        run_drive(str(track), str(out), shade=0.9)
+    assert exc.value.errno == errno.ENOSPC
+    assert snapshot(out) == old and siblings(out) == []
+
+
+def test_sigkill_during_drive_at_every_rename_and_at_random_moments(driven):
+    track, out, old = driven
+    args = {"track": str(track), "out": str(out), "shade": 0.9, "slow": 0.05}
+    outcomes = []
+    for n in (1, 2, 3):            # killed before: building -> ready, drive -> old, ready -> drive
+        p = run_child("drive", {**args, "shade": 0.6 + 0.1 * n}, f"call:rename:{n}:{out.name}")
+        assert killed(p), p.stderr[-2000:]
+        outcomes.append(old_or_new(out, old))
+        old = snapshot(out)
+    assert outcomes == ["old", "new", "new"]
+    rnd = random.Random(15)
+    for k in range(2):
+        p = start_child("drive", {**args, "shade": 0.2 + 0.1 * k}, f"time:{rnd.uniform(0.5, 2.5):.3f}")
+        p.wait(timeout=120)
+        p.stdout.read(), p.stderr.read()
+        if old_or_new(out, old) == "new":
+            old = snapshot(out)
+
+
+def _hold(folder, error):
+    """A thread holding ``folder``'s lock (another holder, as another process would be) until released."""
+    held, done = threading.Event(), threading.Event()
+
+    def hold():
+        with FolderLock(folder, error):
+            held.set()
+            done.wait(60)
+    t = threading.Thread(target=hold)
+    t.start()
+    held.wait(30)
+    return lambda: (done.set(), t.join())
+
+
+def test_two_drives_on_one_folder_the_second_is_refused_with_exit_3(driven, monkeypatch, tmp_path):
+    from mifacerf.cli import main
+    from mifacerf.rendering import api
+
+    from .stand_ins import StandInFace
+
+    track, out, old = driven
+    release = _hold(out, TrackError)
+    try:
+        with pytest.raises(TrackError, match=r"locked by PID \d+ .* \(another drive is running") as exc:
+            run_drive(str(track), str(out), shade=0.9)
+        assert isinstance(exc.value, RefusedError)
+        (tmp_path / "model").mkdir()
+        monkeypatch.setattr(api, "load_model", lambda root: StandInFace(root))
+        r = CliRunner().invoke(main, ["drive", str(track), "--model", str(tmp_path / "model"), "-o", str(out),
+                                      "--env", "flat"])
+        assert r.exit_code == EXIT_REFUSED, r.output
+        assert "locked by PID" in r.stderr and "Traceback" not in r.output
+    finally:
+        release()
+    assert snapshot(out) == old
+
+
+def test_drive_never_replaces_a_folder_that_is_not_a_drive(driven, tmp_path):
+    track, _, _ = driven
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    with pytest.raises(TrackError, match="holds files but no drive.json, so it is not a drive folder"):
+        run_drive(str(track), str(mine))
+    assert snapshot(mine) == {"notes.txt": b"keep me"} and siblings(mine) == []
+
+
+# ------------------------------------------------------------------ track
+def _performance(root, template=None):
+    from mifacerf.formats.performance import PerformanceWriter
+    from mifacerf.rig import camera_ring
+
+    cams = camera_ring([(-20, 0), (20, 0)], width=6, height=5)
+    w = PerformanceWriter(root, cams, 30.0, 2, template or {"schema": "mifacerf.template/1"})
+    rng = np.random.default_rng(0)
+    for f in range(2):
+        for c in cams:
+            w.write(c.name, f, rng.random((5, 6, 3)).astype(np.float32))
+    return w.finish()
+
+
+@pytest.fixture
+def tracked(tmp_path):
+    """(performance whose template is unusable, PERF/track as a complete earlier track with a drive inside)."""
+    perf = _performance(tmp_path / "perf")
+    track = make_track(perf / "track")
+    run_drive(str(track), str(track / "drive"))
+    return perf, track, snapshot(track)
+
+
+def test_a_failed_track_keeps_the_previous_one_and_its_drive(tracked):
+    from mifacerf.tracking.track import track_performance
+
+    perf, track, old = tracked
+    with pytest.raises(TrackError, match="no usable template"):
+        track_performance(perf, progress=False)
+    assert snapshot(track) == old and siblings(track) == []
+
+
+def test_two_tracks_on_one_folder_the_second_is_refused_with_exit_3(tracked):
+    from mifacerf.cli import main
+
+    perf, track, old = tracked
+    release = _hold(track, TrackError)
+    try:
+        r = CliRunner().invoke(main, ["track", str(perf)])
+        assert r.exit_code == EXIT_REFUSED, r.output
+        assert "locked by PID" in r.stderr and "another track is running" in r.stderr
+    finally:
+        release()
+    assert snapshot(track) == old
+
+
+def test_track_never_replaces_a_folder_that_is_not_a_track(tracked, tmp_path):
+    from mifacerf.tracking.track import track_performance
+
+    perf, _, _ = tracked
+    with pytest.raises(TrackError, match="holds files but no track.json, so it is not a track folder"):
+        track_performance(perf, perf, progress=False)            # 'track -o PERF'
+    assert (perf / "manifest.json").exists() and siblings(perf) == []
+
+
+def test_an_interrupted_swap_is_finished_when_the_track_is_opened(tracked):
+    """Killed between 'TRACK -> old' and 'ready -> TRACK': the next reader (Track) finishes the swap."""
+    from mifacerf.tracking.track import Track
+
+    perf, track, old = tracked
+    ready = track.parent / ".track.ready-1-x"
+    ready.mkdir()
+    make_track(ready, seed=1)
+    track.rename(track.parent / ".track.old-1-x")
+    tr = Track(track)
+    assert tr.n_frames == 6 and siblings(track) == []
+    assert not (track / "drive").exists()          # (the carry-over happens before the swap, in finish)
+
+
+# ------------------------------------------------------------------ the transaction itself
+def test_output_folder_sigkill_at_every_rename_keeps_old_or_new_and_carries_what_is_not_its_own(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "done.json").write_text("{}")
+    (target / "a.txt").write_text("old")
+    (target / "stale.txt").write_text("old only")
+    (target / "keep").mkdir()
+    (target / "keep" / "x.bin").write_bytes(b"another command's output")
+    old = snapshot(target)
+    new = {"a.txt": b"new", "sub/b.txt": b"new b", "done.json": b"{}", "keep/x.bin": b"another command's output"}
+    outcomes = []
+    for n in (1, 2, 3, None):
+        kill = f"call:rename:{n}:{target.name}" if n else "none"
+        p = run_child("output", {"target": str(target), "files": {"a.txt": "new", "sub/b.txt": "new b"}}, kill)
+        assert killed(p) == bool(n), p.stderr[-2000:]
+        repair_if_needed(target, "done.json", OSError)   # what the next run (or a reader) does first
+        assert siblings(target) == [], siblings(target)
+        now = snapshot(target)
+        assert now in (old, new), now
+        outcomes.append("old" if now == old else "new")
+    assert outcomes == ["old", "new", "new", "new"]
+
+
+def test_output_folder_dropped_unfinished_is_discarded_and_unlocked(tmp_path):
+    target = tmp_path / "out"
+    o = OutputFolder(target, "done.json", ValueError)
+    (o.root / "half.txt").write_text("half")
+    building = o.root
+    del o                                           # (an exception unwinding the writer's frame)
+    assert not building.exists() and not target.exists()
+    with OutputFolder(target, "done.json", ValueError, wait=False) as o:
+        with pytest.raises(ValueError, match=r"done.json: not written; the new run folder is incomplete"):
+            o.finish()
+    assert not target.exists() and siblings(target) == []
