@@ -13,7 +13,10 @@ direction ω_i (world)::
 with ``R = R_ts`` the vertex's local rotation into source ``s`` (§6.1), ``cw`` the camera
 weights of the rotated view (:class:`.views.ViewSampler`, per hit; cameras that do not
 see the vertex in ``s`` drop out), ``x_{s,c}`` the projection of the hit's surface point
-in the source geometry into camera ``c`` (bilinear over texels), and ``interp`` the
+in the source geometry into camera ``c`` (bilinear over the texels whose seen surface lies within
+:data:`DEPTH_TOLERANCE` of the hit, in the exact path's three camera tiers — :meth:`MaterialState.evaluate`;
+without that depth test a texel on camera ``c``'s silhouette, bright with a grazing back light, was
+blended in where the exact path drops it: the material's 34.4 dB against the exact path), and ``interp`` the
 light-stage rule (:class:`.light_interp.LightInterpolator`, named as the exact path's light basis:
 ``voronoi``, the default — the nearest light, so that an environment is integrated as the exact path
 does — or ``hat``, barycentric between the three lights round the direction). The value is
@@ -34,6 +37,10 @@ from .light_interp import LightInterpolator
 from .relight import to_device_f16
 from .self_visibility import MIN_VISIBILITY
 from .views import ViewSampler
+
+#: metres: a texel is used for a hit only if the surface its camera saw there lies this close to the hit's
+#: distance from that camera (the exact path's occlusion-aware filtering, :class:`.frame.LitFrame`)
+DEPTH_TOLERANCE = 0.004
 
 
 class MaterialState:
@@ -56,6 +63,8 @@ class MaterialState:
         self.triangles = to_jit(mi.UInt32, model.triangles.reshape(-1))
         self.sources = to_jit(mi.Float, np.asarray(model.vertices, np.float64).reshape(-1))
         self.visible = to_jit(mi.Float, np.asarray(model.visible, np.float32).reshape(-1))   # (S, C, T)
+        self.visible_near = to_jit(mi.Float, np.asarray(model.visible_near, np.float32).reshape(-1))
+        self.depth_tolerance = DEPTH_TOLERANCE
         self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
         self.n_lights = model.n_lights
         self.views = ViewSampler.from_cameras(model.cameras)
@@ -107,7 +116,7 @@ class MaterialState:
     def _upload(self, sources: list[int]) -> None:
         """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images."""
         mi, model, C = self.mi, self.model, self.C
-        index_parts, rf_parts = [], []
+        index_parts, rf_parts, depth_parts = [], [], []
         offsets = np.zeros(len(model.expressions) * C, np.uint32)
         img_off, row_off = 0, 0
         for s in sources:
@@ -118,6 +127,7 @@ class MaterialState:
                     f = model.field(s, c)
                     idx[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f)) + row_off
                     rf_parts.append(self._rows(f, s, c))
+                    depth_parts.append(np.asarray(f.depth, np.float32))
                     row_off += len(f)
                 index_parts.append(idx)
                 offsets[s * C + c] = img_off
@@ -127,6 +137,7 @@ class MaterialState:
         self.texel_index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32))
         self.field_offset = to_jit(mi.UInt32, offsets)
         self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
+        self.texel_depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1, np.float32))
         self.uploaded = list(sources)
 
     def _rows(self, f, s: int, c: int) -> np.ndarray:
@@ -142,7 +153,13 @@ class MaterialState:
     # ------------------------------------------------------------------ kernel
     def evaluate(self, tri, p, view, light, active=True):
         """Radiance per unit irradiance (Color3f) for hits (triangle ``tri``, point ``p``), unit world
-        directions ``view`` (towards the viewer) and ``light`` (towards the light)."""
+        directions ``view`` (towards the viewer) and ``light`` (towards the light).
+
+        Texels are chosen as the exact path chooses them (:meth:`.frame.LitFrame.shade`): per camera the 2x2
+        bilinear taps whose seen surface lies within :data:`DEPTH_TOLERANCE` of the hit (a texel at camera
+        ``c``'s silhouette that shows another part of the surface is not used), in three tiers — cameras
+        that see the vertex or a triangle round it (``visible_near``), cameras that see the vertex itself
+        (``visible``), and the latter without the depth test — the first tier with any weight wins."""
         import drjit as dr
 
         mi = self.mi
@@ -153,11 +170,12 @@ class MaterialState:
         n = dr.width(tri) if dr.width(tri) > 1 else dr.width(p.x)
         K, C, T, L3 = self.K, self.C, len(self.model.vertices[0]), self.n_lights * 3
         n_pairs = dr.opaque(UInt32, 3 * K)
+        tol = dr.opaque(Float, self.depth_tolerance)
 
         def cond(i, *_):
             return i < n_pairs
 
-        def body(i, r, g, bl, wsum):
+        def body(i, *acc):
             k = i // K
             j = i - k * K
             v = dr.select(k == 0, vid[0], dr.select(k == 1, vid[1], vid[2]))
@@ -187,42 +205,60 @@ class MaterialState:
             for kk in range(3):
                 for d in range(3):
                     ps[d] += b[kk] * dr.gather(Float, self.sources, (u * T + vid[kk]) * 3 + d, use)
-            # drop cameras that do not see the vertex in this source; renormalise
-            vis = [dr.gather(Float, self.visible, (u * C + cam_ids[m]) * T + v, use) for m in range(3)]
-            cw = [cam_w[m] * vis[m] for m in range(3)]
-            ctot = cw[0] + cw[1] + cw[2]
-            cinv = dr.select(ctot > 0, dr.rcp(ctot), 0.0)
+            # per tier, the cameras that see the vertex (near / itself) in this source, renormalised
+            tiers = []
+            for table in (self.visible_near, self.visible):
+                cw = [cam_w[m] * dr.gather(Float, table, (u * C + cam_ids[m]) * T + v, use) for m in range(3)]
+                ctot = cw[0] + cw[1] + cw[2]
+                cinv = dr.select(ctot > 0, dr.rcp(ctot), 0.0)
+                tiers.append([x * cinv for x in cw])
+            acc = list(acc)
             for m in range(3):
                 c = cam_ids[m]
-                wc = cw[m] * cinv
-                usec = use & (wc > 0)
+                wp, wf = tiers[0][m], tiers[1][m]
+                usec = use & ((wp > 0) | (wf > 0))
 
                 def P(e):
                     return dr.gather(Float, self.cam_table, c * CAM_PARAMS + e, usec)
 
-                uu, vv, _, zc, wi, hi = project(P, ps)
+                uu, vv, dist, zc, wi, hi = project(P, ps)
                 foff = dr.gather(UInt32, self.field_offset, u * C + c, usec)
                 col = [Float(0), Float(0), Float(0)]
-                cov = Float(0)
+                col_d = [Float(0), Float(0), Float(0)]
+                cov, cov_d = Float(0), Float(0)
                 for pix, wgt, inside in bilinear_taps(uu, vv, wi, hi, usec & (zc > 0)):
                     t = dr.gather(Int32, self.texel_index, foff + pix, inside)
                     ok = inside & (t >= 0)
                     tw = dr.select(ok, wgt, 0.0)
-                    row = UInt32(dr.select(ok, t, 0)) * L3
-                    for li in range(3):
-                        for ch in range(3):
-                            val = Float(dr.gather(type(self.rf), self.rf, row + light_ids[li] * 3 + ch, ok))
-                            col[ch] += tw * light_w[li] * val
+                    tsel = UInt32(dr.select(ok, t, 0))
+                    seen = ok & (dr.abs(dr.gather(Float, self.texel_depth, tsel, ok) - dist) <= tol)
+                    tw_d = dr.select(seen, wgt, 0.0)
+                    row = tsel * L3
+                    for ch in range(3):
+                        val = Float(0)
+                        for li in range(3):
+                            val += light_w[li] * Float(dr.gather(type(self.rf), self.rf,
+                                                                 row + light_ids[li] * 3 + ch, ok))
+                        col[ch] += tw * val
+                        col_d[ch] += tw_d * val
                     cov += tw
+                    cov_d += tw_d
+                seen = usec & (cov_d > 1e-3)
                 good = usec & (cov > 1e-3)
-                scale = dr.select(good, bk * w * wc / cov, 0.0)
-                r += scale * col[0]
-                g += scale * col[1]
-                bl += scale * col[2]
-                wsum += dr.select(good, bk * w * wc, 0.0)
-            return i + 1, r, g, bl, wsum
+                inv_d = dr.select(seen, dr.rcp(cov_d), 0.0)
+                inv = dr.select(good, dr.rcp(cov), 0.0)
+                # accumulators: (near cameras, depth-tested), (own cameras, depth-tested), (own, any texel)
+                for t_, (wt, cc, cinv_) in enumerate(((dr.select(seen, bk * w * wp, 0.0), col_d, inv_d),
+                                                      (dr.select(seen, bk * w * wf, 0.0), col_d, inv_d),
+                                                      (dr.select(good, bk * w * wf, 0.0), col, inv))):
+                    for ch in range(3):
+                        acc[4 * t_ + ch] = acc[4 * t_ + ch] + wt * cc[ch] * cinv_
+                    acc[4 * t_ + 3] = acc[4 * t_ + 3] + wt
+            return (i + 1, *acc)
 
-        zeros = [dr.opaque(Float, 0, n) for _ in range(4)]
-        _, r, g, bl, wsum = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)
-        inv = dr.select(wsum > 1e-9, dr.rcp(wsum), 0.0)
-        return mi.Color3f(r * inv, g * inv, bl * inv)
+        zeros = [dr.opaque(Float, 0, n) for _ in range(12)]
+        acc = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)[1:]
+        primary, fallback = acc[3] > 1e-9, acc[7] > 1e-9
+        pick = [dr.select(primary, acc[q], dr.select(fallback, acc[4 + q], acc[8 + q])) for q in range(4)]
+        inv = dr.select(pick[3] > 1e-9, dr.rcp(pick[3]), 0.0)
+        return mi.Color3f(pick[0] * inv, pick[1] * inv, pick[2] * inv)
