@@ -10,7 +10,8 @@ changed runs nothing, rewrites nothing and takes seconds):
 3. **model** — the relightable morphable model (``OUT/model``) and its PCA-compressed fields;
 4. **renders** — blends of captured expressions under three environments, from a capture
    camera and from novel viewpoints, composited into the environment plates
-   (``OUT/renders``: EXR + PNG, and ``renders.png``, a contact grid);
+   (``OUT/renders``: EXR + PNG and ``index.json``, written as one transaction; ``renders.png``, a
+   contact grid);
 5. **performance** — a tracked multi-view performance driving the model, composited into a
    plate (``OUT/performance_render``: frames, video);
 6. **metrics** — PSNR against path-traced ground truth per case and time per stage
@@ -25,7 +26,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from .formats.files import atomic_write_bytes
+from .formats.files import OutputFolder, atomic_write_bytes
 from .steps import Steps
 
 ENVIRONMENTS = ("sky", "interior", "gradient")
@@ -108,22 +109,29 @@ def stage_renders(model: Path, out: Path) -> dict:
               {pick("surprise", "eyes_wide_open"): 0.5, pick("viseme_aa", "mouth_open_wide"): 0.5},
               {pick("anger", "frown", "disgust"): 0.7, pick("viseme_oo", "viseme_pbm"): 0.3}]
     views = [None, (20.0, 3.0), (-25.0, -4.0)]
-    rdir = out / "renders"
-    rdir.mkdir(parents=True, exist_ok=True)
-    tiles, times = [], []
+    tiles, times, index = [], [], []
     jobs = [(b, e, v) for b in range(len(blends)) for e in ENVIRONMENTS for v in views]
-    for b, env, view in tqdm(jobs, desc="renders"):
-        cam = face.camera(view, size=256)
-        st = RenderStats()
-        t0 = time.perf_counter()
-        rgba = face.render(blends[b], camera=cam, env=env, spp=4, stats=st)
-        times.append({"seconds": time.perf_counter() - t0, "stages": st.times})
-        comp = mf.composite(rgba, mf.environment_plate(env, cam))
-        tag = f"blend{b}_{env}_{'capture' if view is None else f'yaw{view[0]:+.0f}'}"
-        write_exr(rdir / f"{tag}.exr", rgba)
-        write_png(rdir / f"{tag}.png", comp)
-        desc = "+".join(f"{w:.1f} {n}" for n, w in blends[b].items())
-        tiles.append(label(tile8(comp, size=192), f"{desc[:30]} | {env}"))
+    # OUT/renders is one transaction: written beside, swapped in with its index.json once every render is in
+    with OutputFolder(out / "renders", "index.json", what="renders",      # (earlier demos wrote no index)
+                      legacy=lambda name: name.startswith("blend") and name.endswith((".exr", ".png"))) as output:
+        rdir = output.root
+        for b, env, view in tqdm(jobs, desc="renders"):
+            cam = face.camera(view, size=256)
+            st = RenderStats()
+            t0 = time.perf_counter()
+            rgba = face.render(blends[b], camera=cam, env=env, spp=4, stats=st)
+            times.append({"seconds": time.perf_counter() - t0, "stages": st.times})
+            comp = mf.composite(rgba, mf.environment_plate(env, cam))
+            tag = f"blend{b}_{env}_{'capture' if view is None else f'yaw{view[0]:+.0f}'}"
+            write_exr(rdir / f"{tag}.exr", rgba)
+            write_png(rdir / f"{tag}.png", comp)
+            index.append({"render": tag, "blend": blends[b], "environment": env, "view": view,
+                          "warnings": st.warnings})
+            desc = "+".join(f"{w:.1f} {n}" for n, w in blends[b].items())
+            tiles.append(label(tile8(comp, size=192), f"{desc[:30]} | {env}"))
+        write_json_text(rdir / "index.json", json.dumps({"format": "mifacerf.demo_renders", "version": 1,
+                                                        "renders": index}, indent=1))
+        output.finish()
     write_png(out / "renders.png", grid(tiles, len(views) * len(ENVIRONMENTS)))
     warm = times[1:] or times
     return {"frames": len(times), "seconds_per_frame": float(np.mean([t["seconds"] for t in warm])),

@@ -456,7 +456,8 @@ class OutputFolder:
 
     Construction takes the folder's lock (``wait``: see :class:`FolderLock`; False refuses at once,
     exit 3), finishes or undoes an interrupted swap (:func:`repair_swap`), refuses a folder that holds
-    files but no ``marker`` (it is not this command's output: never replaced), and makes :attr:`root`,
+    files but no ``marker`` (it is not this command's output: never replaced; ``legacy(name)`` accepts
+    the entries of an earlier version's output, which had no marker), and makes :attr:`root`,
     a ``.<name>.building-*`` folder beside ``target`` that the command writes into. :meth:`finish`
     (once ``marker`` is written) hard-links into it the entries of the previous folder that ``carry(name)``
     keeps (another command's output inside this one) and swaps it in (:func:`swap_in`): killed, failed or
@@ -466,7 +467,7 @@ class OutputFolder:
     """
 
     def __init__(self, target: str | os.PathLike, marker: str, error: type[Exception] = OSError,
-                 what: str = "run", wait: bool | float = False, carry=None, log=None):
+                 what: str = "run", wait: bool | float = False, carry=None, log=None, legacy=None):
         self.target = Path(os.path.abspath(target))
         self.marker, self.error, self.what, self.carry = marker, error, what, carry
         lock = FolderLock(self.target, error, wait=wait, log=log, what=what).acquire()
@@ -475,7 +476,7 @@ class OutputFolder:
             if self.target.exists() and not self.target.is_dir():
                 raise error(f"{self.target}: not a folder")
             if self.target.is_dir() and not (self.target / marker).exists() and \
-                    any(not n.startswith(".") for n in os.listdir(self.target)):
+                    any(not n.startswith(".") and not (legacy and legacy(n)) for n in os.listdir(self.target)):
                 raise error(f"{self.target}: holds files but no {marker}, so it is not a {what} folder; refusing "
                             "to replace it (choose a new or empty folder)")
             self.root = new_building_dir(self.target)

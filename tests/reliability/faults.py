@@ -99,6 +99,7 @@ def _main(job: str, args: dict, kill: str) -> None:
         from mifacerf.rendering.compression import compress_model
         from mifacerf.rendering.model import Model
     elif job == "demo":
+        import mifacerf.demo  # noqa: F401
         from stand_ins import run_demo
     elif job == "drive":
         from stand_ins import run_drive

@@ -85,3 +85,74 @@ def drive_state(out: Path) -> dict:
     assert frames == sorted(f"F{f:05d}.{e}" for f in range(first, stop) for e in ("exr", "png")), frames
     assert (out / "weights.npz").exists() and "flat" in meta["environments"]
     return meta
+
+
+# ------------------------------------------------------------------ the demo with stand-in stages
+#: (step, output folder, its marker) of the stand-in demo, in the demo's order (capture: files only)
+DEMO_FOLDERS = [("register", "capture/registration", "registration.json"), ("model", "model", "model.json"),
+                ("renders", "renders", "index.json"), ("performance", "performance_render", "drive.json"),
+                ("metrics", "bench", "bench.json")]
+DEMO_STEPS = ["capture"] + [s for s, _, _ in DEMO_FOLDERS]
+
+
+def run_demo(out: str, slow: float = 0.05, files: int = 4) -> None:
+    """``mifacerf demo -o OUT --preset tiny`` with stand-in stages: capture writes ``capture/manifest.json``
+    and ``capture/hand/h.json`` (the hand input: its text is the version every later stage writes) once;
+    every later stage writes its output folder as a transaction (as the real stages do), ``files`` files
+    ``slow`` seconds apart. Each stage logs ``start NAME`` / ``end NAME`` to ``OUT/../calls.log``."""
+    from mifacerf import demo
+    from mifacerf.formats.files import OutputFolder, atomic_write_bytes
+
+    out = Path(out)
+    calls = out.parent / "calls.log"
+
+    def logged(name, fn):
+        def stage(*a, **k):
+            with open(calls, "a") as f:
+                f.write(f"start {name}\n")
+            result = fn()
+            with open(calls, "a") as f:
+                f.write(f"end {name}\n")
+            return result
+        return stage
+
+    def capture():
+        for rel, text in (("capture/manifest.json", "{}"), ("capture/hand/h.json", "a"), ("contact_sheet.png", "png")):
+            if not (out / rel).exists():
+                (out / rel).parent.mkdir(parents=True, exist_ok=True)
+                atomic_write_bytes(out / rel, text.encode())
+        return out / "capture"
+
+    def folder(name, rel, marker, result=None, extra=None):
+        def fn():
+            version = (out / "capture" / "hand" / "h.json").read_text()
+            with OutputFolder(out / rel, marker, what=name) as o:
+                for i in range(files):
+                    time.sleep(slow)
+                    (o.root / f"f{i}.txt").write_text(f"{name} {version} {i}")
+                (o.root / marker).write_text(json.dumps({"version": version}))
+                o.finish()
+            if extra:
+                atomic_write_bytes(out / extra, f"{name} {version}".encode())
+            return None if result is None else {**result, "version": version}
+        return fn
+
+    stages = {
+        "stage_capture": logged("capture", capture),
+        "stage_register": logged("register", folder("register", *DEMO_FOLDERS[0][1:])),
+        "stage_model": logged("model", folder("model", *DEMO_FOLDERS[1][1:])),
+        "stage_renders": logged("renders", folder("renders", *DEMO_FOLDERS[2][1:], {"frames": 27},
+                                                  extra="renders.png")),
+        "stage_performance": logged("performance", folder("performance", *DEMO_FOLDERS[3][1:], {"frames": 9})),
+        "stage_metrics": logged("metrics", folder("metrics", *DEMO_FOLDERS[4][1:],
+                                                  {"cases": {"summary": {}, "truth_noise_psnr": 40.0},
+                                                   "bench": {"results": []}}, extra="metrics_cases.png")),
+    }
+    saved = {k: getattr(demo, k) for k in stages}
+    try:
+        for k, v in stages.items():
+            setattr(demo, k, v)
+        demo.demo_cmd.main(["-o", str(out), "--preset", "tiny"], standalone_mode=False)
+    finally:
+        for k, v in saved.items():
+            setattr(demo, k, v)

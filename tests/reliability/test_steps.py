@@ -90,3 +90,55 @@ def test_demo_second_run_skips_everything_and_rewrites_nothing(tmp_path, monkeyp
     (out / "capture" / "hand" / "h.json").write_text("a point moved")    # an input of the registration
     CliRunner().invoke(demo.demo_cmd, ["-o", str(out), "--preset", "tiny"])
     assert calls[6:] == ["register", "model", "renders", "performance", "metrics"]
+
+
+def test_sigkill_during_the_demo_steps_leaves_old_or_new_and_the_rerun_redoes_only_what_is_needed(tmp_path):
+    """Item 7: the demo (stand-in stages, each output a transaction) killed at random moments of a rerun
+    after a hand input changed: every stage's output is its previous complete state or the new one, the
+    step record is whole, and the next run completes, calling only the stages whose record does not
+    already match (each one it calls changes its record: nothing is redone needlessly); the run after
+    calls none."""
+    import json
+    import random
+
+    from mifacerf.formats.files import repair_if_needed
+
+    from .faults import killed, snapshot, start_child
+    from .stand_ins import DEMO_FOLDERS, DEMO_STEPS, run_demo
+
+    out, calls = tmp_path / "out", tmp_path / "calls.log"
+    run_demo(str(out), slow=0.0)
+    rnd = random.Random(7)
+    n_killed = 0
+    for version in "bcd":
+        before = {rel: snapshot(out / rel) for _, rel, _ in DEMO_FOLDERS}
+        (out / "capture" / "hand" / "h.json").write_text(version)
+        calls.write_text("")
+        p = start_child("demo", {"out": str(out), "slow": 0.08}, f"time:{rnd.uniform(0.1, 2.2):.3f}")
+        p.wait(timeout=120)
+        p.stdout.read(), p.stderr.read()
+        n_killed += killed(p)
+        for step, rel, marker in DEMO_FOLDERS:       # the previous complete state, or the new one
+            repair_if_needed(out / rel, marker, OSError)
+            now = snapshot(out / rel)
+            if now != before[rel]:
+                assert json.loads(now[marker]) == {"version": version}, (step, now)
+                assert sorted(now) == sorted([marker] + [f"f{i}.txt" for i in range(4)]), (step, sorted(now))
+                assert all(now[f"f{i}.txt"] == f"{step} {version} {i}".encode() for i in range(4))
+        record = json.loads((out / "steps.json").read_text())["steps"]     # whole (written atomically)
+        calls.write_text("")
+        run_demo(str(out), slow=0.0)
+        again = [ln.split()[1] for ln in calls.read_text().splitlines() if ln.startswith("start")]
+        after = json.loads((out / "steps.json").read_text())["steps"]
+        for step in again:                            # each stage it ran was needed: its record changes
+            assert record.get(step, {}).get("inputs") != after[step]["inputs"] or \
+                record.get(step, {}).get("outputs") != after[step]["outputs"], (step, again)
+        for step in set(DEMO_STEPS[1:]) - set(again):    # what it skipped was done by the killed run
+            assert record[step]["inputs"] == after[step]["inputs"], step
+        for step, rel, marker in DEMO_FOLDERS:
+            assert json.loads((out / rel / marker).read_text()) == {"version": version}
+        assert "capture" not in again                  # (its inputs never changed)
+        calls.write_text("")
+        run_demo(str(out), slow=0.0)
+        assert calls.read_text() == ""                 # nothing changed: nothing runs
+    assert n_killed >= 2                               # (the kills landed inside the run)
