@@ -56,4 +56,42 @@ def synths(tmp_path_factory, cluster):
 def test_synth_on_two_workers_writes_the_same_capture(synths):
     root, one, two = synths
     assert_same_files(one, two)
-    assert_same_files(root / "one" / "truth", root / "two" / "truth", skip=("truth.json",))
+    assert_same_files(root / "one" / "truth", root / "two" / "truth")
+
+
+@pytest.fixture(scope="module")
+def model(synths):
+    from helpers.tracking import write_truth_registration
+    from mifacerf.rendering.build import build_model
+
+    root, one, _ = synths
+    reg = write_truth_registration(root / "one")
+    return build_model(one, root / "model", registration=reg, progress=False).parent
+
+
+@pytest.mark.slow
+def test_compress_on_two_workers_writes_the_same_fields(model, cluster, tmp_path):
+    import shutil
+
+    from mifacerf.rendering.compression import compress_model
+    from mifacerf.rendering.model import Model
+
+    a, b = shutil.copytree(model, tmp_path / "a"), shutil.copytree(model, tmp_path / "b")
+    ia = compress_model(Model(a), [2, 4], progress=False)
+    ib = compress_model(Model(b), [2, 4], progress=False, executor=cluster)
+    assert ia == ib and ia["fields"] == 9
+    assert_same_files(a, b)    # every .pca<k>.npz and model.json
+
+
+@pytest.mark.slow
+def test_evaluate_on_two_workers_gives_the_same_report(synths, model, cluster, tmp_path):
+    from mifacerf.evaluation.render_cases import evaluate
+
+    root = synths[0]
+    options = dict(envs=("gradient",), n=1, seed=5, spp_truth=8, size=32, progress=False)
+    ra = evaluate(root / "one", model, pictures=tmp_path / "a.png", **options)
+    rb = evaluate(root / "one", model, pictures=tmp_path / "b.png", executor=cluster, **options)
+    untimed = lambda r: json.dumps([{k: v for k, v in c.items() if k not in ("seconds", "stages")}  # noqa: E731
+                                    for c in r["cases"]], sort_keys=True)
+    assert len(ra["cases"]) == 4 and untimed(ra) == untimed(rb)
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()

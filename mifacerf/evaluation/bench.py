@@ -7,7 +7,14 @@ Configurations (all in one run; times are ratios to the dense reference):
 * ``pca<K>``  — the compressed path with K coefficients per texel (:mod:`mifacerf.rendering.compression`;
   ``<method><K>`` for every compressed method the model holds, by its name in ``COMPRESSION_METHODS``);
 * ``exact@<size>`` — the exact path at another image size;
-* ``lights/<n>``   — the exact path with a subset of the light stage (every n-th arm position and strobe).
+* ``lights/<n>``   — the exact path with a subset of the light stage (every n-th arm position and strobe);
+* ``size/<n>``     — the exact path at n² pixels, timed only (no ground truth at that size): the resolution
+  sweep (128² … 1024² with ``exact@128`` and the job's size);
+* ``cold``         — a fresh process: import, open the model, render the first frame (seconds since the
+  process started; no warm-up);
+* ``sequence``     — an animation of ``sequence_frames`` frames from the first frame's camera, the weights
+  travelling through the job's blends (frames per second = 1 / its s/frame; kernels compiled after its
+  first frame recorded: zero when nothing recompiles).
 
 Each configuration runs in a fresh worker process (so its peak memory, ``VmHWM``, is its own),
 renders the same frames (blends of captured expressions from novel viewpoints, §5-free) after a
@@ -27,6 +34,8 @@ from pathlib import Path
 import click
 import numpy as np
 
+from ..execution import Executor, worker_cached
+
 
 def frames(model, n: int, seed: int, size: int):
     """``n`` benchmark frames: random 2-expression blends from random ring cameras."""
@@ -40,10 +49,15 @@ def frames(model, n: int, seed: int, size: int):
     return out
 
 
-def configs(model_meta: dict, quick: bool = False) -> list[str]:
+#: the resolution sweep's sizes beside the job's own and exact@128 (``size/<n>`` rows)
+SWEEP_SIZES = (512, 1024)
+
+
+def configs(model_meta: dict, quick: bool = False, sweep=SWEEP_SIZES) -> list[str]:
     compressed = [f"{method}{k}" for method, ranks in model_meta.get("compressed", {}).items() for k in ranks]
-    out = ["dense", "exact"] + compressed + ["exact@128", "lights/2"]
-    return out if not quick else ["dense", "exact"] + compressed[:1]
+    out = ["dense", "exact"] + compressed + ["exact@128", "lights/2"] + [f"size/{n}" for n in sweep] + \
+        ["cold", "sequence"]
+    return out if not quick else ["dense", "exact"] + compressed[:1] + ["cold", "sequence"]
 
 
 def compressed_config(config: str) -> tuple[str, int] | None:
@@ -67,6 +81,32 @@ def vm_hwm() -> int:
     return -1
 
 
+def process_age() -> float:
+    """Seconds since this process started (Linux ``/proc``; elsewhere since this module was imported)."""
+    try:
+        start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19]) / os.sysconf("SC_CLK_TCK")
+        return float(Path("/proc/uptime").read_text().split()[0]) - start
+    except (OSError, ValueError, IndexError):
+        return time.perf_counter() - _IMPORTED
+
+
+_IMPORTED = time.perf_counter()
+
+
+def sequence_frames(frames: list[dict], n: int) -> list[dict]:
+    """``n`` frames from the first frame's camera whose weights travel linearly through the blends of ``frames``
+    (one after another, back to the first)."""
+    out = []
+    for k in range(n):
+        x = k * len(frames) / n
+        a, b = frames[int(x)]["expression"], frames[(int(x) + 1) % len(frames)]["expression"]
+        w = x - int(x)
+        spec = {e: (1 - w) * a.get(e, 0.0) + w * b.get(e, 0.0) for e in {*a, *b}}
+        out.append({"expression": {e: v for e, v in spec.items() if v > 0}, "yaw": frames[0]["yaw"],
+                    "pitch": frames[0]["pitch"]})
+    return out
+
+
 def worker(job_path: str, config: str) -> None:
     """Render the job's frames with one configuration; write renders and timings next to the job."""
     from ..rendering.api import load_model
@@ -76,10 +116,14 @@ def worker(job_path: str, config: str) -> None:
     job = json.loads(Path(job_path).read_text())
     out = Path(job["out"]) / config.replace("/", "_")
     out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("frame*.npy"):   # a row that saves no frames must not show an earlier run's
+        old.unlink()
     face = load_model(job["model"])
     size = job["size"]
     if config.startswith("exact@"):
         size = int(config.split("@")[1])
+    if config.startswith("size/"):
+        size = int(config.split("/")[1])
     compressed = compressed_config(config)
     if compressed:
         face.renderer = Renderer(face.model, method=compressed[0], rank=compressed[1])
@@ -91,22 +135,45 @@ def worker(job_path: str, config: str) -> None:
         face.renderer = Renderer(face.model, lights=keep)
     face.renderer.cache_frames = False   # the warm-up frame repeats frame 1: time real renders
     env = face.environment(job["env"])
+    frames = [job["frames"][0]] + job["frames"]        # frame 0 is the warm-up
+    save = not (config.startswith("size/") or config in ("cold", "sequence"))
+    history = None
+    if config == "cold":
+        frames = job["frames"][:1]
+    elif config == "sequence":
+        import drjit as dr
+
+        frames = sequence_frames(job["frames"], int(job.get("sequence_frames", 120)))
+        face.renderer.cache_frames = True              # as mifacerf drive renders
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        history = []
     times, stages = [], []
-    for i, fr in enumerate([job["frames"][0]] + job["frames"]):
+    for i, fr in enumerate(frames):
         cam = face.camera((fr["yaw"], fr["pitch"]), size=size)
         target, W = face.target(fr["expression"])
         st = RenderStats()
+        if history is not None:
+            dr.kernel_history()
         t0 = time.perf_counter()
         if config == "dense":
             img = dense_render(face.renderer, target, W, cam, env, spp=job["spp"])
         else:
             img = face.renderer.render(target, W, cam, env, spp=job["spp"], stats=st)
         dt = time.perf_counter() - t0
-        if i > 0:  # frame 0 is the warm-up
+        if history is not None:
+            history.append(sum(1 for e in dr.kernel_history() if e["type"] == dr.KernelType.JIT and not e["cache_hit"]))
+        if config == "cold":
+            times.append(process_age())
+            stages.append(st.times)
+        elif i > 0 or config == "sequence":
             times.append(dt)
             stages.append(st.times)
-            np.save(out / f"frame{i - 1}.npy", img)
-    (out / "timing.json").write_text(json.dumps({"seconds": times, "stages": stages, "peak_bytes": vm_hwm()}))
+            if save:
+                np.save(out / f"frame{i - 1}.npy", img)
+    timing = {"seconds": times, "stages": stages, "peak_bytes": vm_hwm(), "median_seconds": float(np.median(times))}
+    if history is not None:
+        timing["compiled_after_first"] = int(sum(history[1:]))
+    (out / "timing.json").write_text(json.dumps(timing))
 
 
 def disk_bytes(model_root: Path, config: str) -> int:
@@ -123,11 +190,56 @@ def disk_bytes(model_root: Path, config: str) -> int:
     return total
 
 
+class TruthContext:
+    """What every ground-truth unit of :func:`run` shares (pickled, a worker opens the folders once)."""
+
+    def __init__(self, synth_out, model, env: str, size: int, spp_truth: int, tr=None, face=None):
+        self.synth_out, self.model, self.env, self.size, self.spp_truth = str(synth_out), str(model), env, size, spp_truth
+        self._tr, self._face = tr, face
+
+    def __getstate__(self):
+        return {**self.__dict__, "_tr": None, "_face": None}
+
+    def opened(self):
+        if self._tr is None:
+            from ..rendering.api import load_model
+            from ..synthetic.truth_scene import TruthRenderer
+
+            stamp = os.stat(Path(self.model) / "model.json").st_mtime_ns
+            self._tr, self._face = worker_cached(("bench truth", self.synth_out, self.model, stamp), lambda: (
+                TruthRenderer.from_synth(self.synth_out), load_model(self.model)))
+        return self._tr, self._face
+
+
+def truth_unit(context: TruthContext, unit: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth frame ``(i, frame)`` → (path-traced truth (H, W, 4), its face mask (H, W))."""
+    from .masks import classify_pixels, face_mask
+
+    i, f = unit
+    tr, face = context.opened()
+    cam = face.camera((f["yaw"], f["pitch"]), size=context.size)
+    t = tr.render(tr.blend(f["expression"]), cam, context.env, spp=context.spp_truth, seed=100 + i)
+    return t, face_mask(classify_pixels(tr.scene(face.environment(context.env)), cam)) & (t[..., 3] > 0.999)
+
+
+def config_unit(job_path: str, cfg: str) -> dict:
+    """One configuration of the sweep: :func:`worker` in a process of its own (its peak memory is its own);
+    returns its ``timing.json``."""
+    subprocess.run([sys.executable, "-m", "mifacerf.evaluation.bench", str(job_path), cfg], check=True,
+                   env={**os.environ})
+    return json.loads((Path(json.loads(Path(job_path).read_text())["out"]) / cfg.replace("/", "_") /
+                       "timing.json").read_text())
+
+
 def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "sky", spp: int = 1,
-        spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress: bool = True) -> dict:
+        spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress: bool = True, executor=None,
+        sequence_frames: int = 120, sweep=SWEEP_SIZES) -> dict:
     """Run the benchmark (``progress``: bars over the truths and the configurations); returns the results
-    (also written to ``out``)."""
-    from ..progress import bar
+    (also written to ``out``).
+
+    ``executor`` (:mod:`mifacerf.execution`; default: this process) runs the ground-truth frames and the
+    configurations as units. Configurations run at once on one machine share its cores: their times are
+    each other's load (compare times from one run with one worker per machine)."""
     from ..rendering.api import load_model
     from ..synthetic.truth_scene import TruthRenderer
     from .masks import classify_pixels, face_mask
@@ -138,25 +250,20 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     face = load_model(model)
     fr = frames(face.model, n_frames, seed, size)
     tr = TruthRenderer.from_synth(synth_out)
-    truths, masks = [], []
-    for i, f in enumerate(bar(fr, progress, desc="ground truth")):
-        cam = face.camera((f["yaw"], f["pitch"]), size=size)
-        t = tr.render(tr.blend(f["expression"]), cam, env, spp=spp_truth, seed=100 + i)
-        truths.append(t)
-        masks.append(face_mask(classify_pixels(tr.scene(face.environment(env)), cam)) & (t[..., 3] > 0.999))
+    ex = executor or Executor()
+    done = ex.map(truth_unit, list(enumerate(fr)), TruthContext(synth_out, model, env, size, spp_truth, tr, face),
+                  desc="ground truth", unit="frame", progress=progress)
+    truths, masks = [t for t, _ in done], [m for _, m in done]
     n_str = int(json.loads((Path(synth_out) / "capture" / "manifest.json").read_text())["rig"]["lights"]
                 ["layout"]["n_strobes"])
     job = {"model": str(Path(model).resolve()), "frames": fr, "size": size, "env": env, "spp": spp,
-           "out": str(out.resolve()), "n_strobes": n_str}
+           "out": str(out.resolve()), "n_strobes": n_str, "sequence_frames": int(sequence_frames)}
     job_path = out / "job.json"
     job_path.write_text(json.dumps(job))
-    cfgs = configs(face.model.meta, quick)
+    cfgs = configs(face.model.meta, quick, sweep)
     results = []
-    for cfg in bar(cfgs, progress, desc="configurations"):
-        subprocess.run([sys.executable, "-m", "mifacerf.evaluation.bench", str(job_path), cfg], check=True,
-                       env={**os.environ})
-        d = out / cfg.replace("/", "_")
-        timing = json.loads((d / "timing.json").read_text())
+    timings = ex.imap(config_unit, cfgs, str(job_path), desc="configurations", unit="config", progress=progress)
+    for cfg, timing in zip(cfgs, timings):
         results.append({"config": cfg, "seconds_per_frame": float(np.mean(timing["seconds"])),
                         "peak_bytes": timing["peak_bytes"], "disk_bytes": disk_bytes(Path(model), cfg),
                         "stages": {k: float(np.mean([s.get(k, 0) for s in timing["stages"]]))
@@ -164,6 +271,13 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     exact = {i: np.load(out / "exact" / f"frame{i}.npy") for i in range(n_frames)}
     for r in results:
         d = out / r["config"].replace("/", "_")
+        timing = json.loads((d / "timing.json").read_text())
+        r["median_seconds"] = timing.get("median_seconds")
+        if "compiled_after_first" in timing:
+            r["compiled_after_first"] = timing["compiled_after_first"]
+        if not (d / "frame0.npy").exists():     # timed only: the sweep's sizes, the cold start, the sequence
+            r["psnr_truth"] = r["psnr_exact"] = None
+            continue
         p_truth, p_exact = [], []
         for i in range(n_frames):
             img = np.load(d / f"frame{i}.npy")
@@ -192,14 +306,28 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     return report
 
 
+def config_label(r: dict) -> str:
+    """A row's name in the table: the timed-only rows say what their seconds are."""
+    c = r["config"]
+    if c == "cold":
+        return "cold start (s: import, open, first frame)"
+    if c == "sequence":
+        return (f"sequence ({1 / r['seconds_per_frame']:.1f} fps; "
+                f"{r.get('compiled_after_first', '?')} kernels compiled after frame 1)")
+    if c.startswith("size/"):
+        return f"exact at {c.split('/')[1]}² (time only)"
+    return c
+
+
 def write_table(report: dict, path: Path) -> None:
     rows = ["| configuration | s / frame | × dense | × exact | PSNR vs truth (dB) | PSNR vs exact (dB) | "
             "peak memory (MB) | data on disk (MB) | × smaller than exact |",
             "|---|---|---|---|---|---|---|---|---|"]
     for r in report["results"]:
         pe = "—" if r["psnr_exact"] is None else (f"{r['psnr_exact']:.1f}" if np.isfinite(r["psnr_exact"]) else "∞")
-        rows.append(f"| {r['config']} | {r['seconds_per_frame']:.3f} | {r['speedup_vs_dense']:.1f} | "
-                    f"{r['speedup_vs_exact']:.2f} | {r['psnr_truth']:.2f} | {pe} | {r['peak_bytes'] / 1e6:.0f} | "
+        pt = "—" if r["psnr_truth"] is None else f"{r['psnr_truth']:.2f}"
+        rows.append(f"| {config_label(r)} | {r['seconds_per_frame']:.3f} | {r['speedup_vs_dense']:.1f} | "
+                    f"{r['speedup_vs_exact']:.2f} | {pt} | {pe} | {r['peak_bytes'] / 1e6:.0f} | "
                     f"{r['disk_bytes'] / 1e6:.1f} | {r['size_vs_exact']:.1f} |")
     path.write_text("\n".join(rows) + "\n")
 
@@ -212,6 +340,8 @@ def plot(report: dict, path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
     for r in report["results"]:
+        if r["psnr_truth"] is None:
+            continue
         ax.scatter(r["seconds_per_frame"], r["psnr_truth"], s=30)
         ax.annotate(r["config"], (r["seconds_per_frame"], r["psnr_truth"]), textcoords="offset points",
                     xytext=(4, 3), fontsize=8)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from ..execution import executor_options
 from ..tracking.cli import drive_options
 
 
@@ -25,11 +26,25 @@ from ..tracking.cli import drive_options
 @click.option("--env", default="sky", show_default=True)
 @click.option("--spp-truth", type=click.IntRange(min=1), default=1024, show_default=True)
 @click.option("--quick", is_flag=True, help="Only dense, exact and the first compressed rank.")
-def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick):
-    """Benchmark run time per frame against error: dense reference, exact path, compressed ranks."""
+@executor_options
+def bench_cmd(model, synth_out, out, n_frames, size, env, spp_truth, quick, workers, cluster):
+    """Benchmark run time per frame against error: dense reference, exact path, compressed ranks.
+
+    The ground truths and the configurations are units on the scheduler at --cluster or a local cluster of
+    --workers processes; by default (neither given, nor MIFACERF_WORKERS / MIFACERF_CLUSTER) this process
+    alone, since configurations that run at once on one machine share its cores and time each other's load
+    (docs/distributed.md)."""
+    import os
+
+    from ..execution import CLUSTER_ENV, WORKERS_ENV, open_executor
     from .bench import run
 
-    report = run(model, synth_out, out, n_frames=n_frames, size=size, env=env, spp_truth=spp_truth, quick=quick)
+    if workers is None and not cluster and not os.environ.get(WORKERS_ENV) and not os.environ.get(CLUSTER_ENV):
+        workers = 1
+    Path(out).mkdir(parents=True, exist_ok=True)
+    with open_executor(workers, cluster, shared=[model, synth_out, out]) as executor:
+        report = run(model, synth_out, out, n_frames=n_frames, size=size, env=env, spp_truth=spp_truth, quick=quick,
+                     executor=executor)
     click.echo((Path(out) / "table.md").read_text())
     click.echo(f"plot: {Path(out) / 'runtime_vs_error.png'}")
     del report
@@ -53,17 +68,20 @@ def evaluate_group():
 @click.option("--seed", type=click.IntRange(min=0), default=None, help="Default: a fresh seed from the clock (recorded).")
 @click.option("--spp-truth", type=click.IntRange(min=1), default=1024, show_default=True)
 @click.option("--size", type=click.IntRange(min=1), default=None, help="Frame size in pixels (default: the cameras' own).")
-def render_cmd(synth_out, model, out, envs, n, seed, spp_truth, size):
+@executor_options
+def render_cmd(synth_out, model, out, envs, n, seed, spp_truth, size, workers, cluster):
     """Rendering accuracy of MODEL against path-traced ground truth: captured, blends, novel views, out-of-set."""
     import time
 
+    from ..execution import open_executor
     from .render_cases import evaluate
 
     seed = int(time.time()) if seed is None else seed
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth, size=size,
-                      pictures=out / "cases.png")
+    with open_executor(workers, cluster, shared=[synth_out, model]) as executor:   # a unit per case and env
+        report = evaluate(synth_out, model, envs=tuple(envs.split(",")), n=n, seed=seed, spp_truth=spp_truth,
+                          size=size, pictures=out / "cases.png", executor=executor)
     (out / "report.json").write_text(json.dumps(report, indent=1))
     for e in report["cases"]:
         click.echo(f"  {e['label'][:48]:48s} {e['env']:9s} face {e['psnr']:.2f} dB, "

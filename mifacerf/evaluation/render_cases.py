@@ -27,6 +27,7 @@ that noise subtracted (an estimate of the error against the noise-free truth).
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import ring_camera
+from ..execution import Executor, worker_cached
 from ..rendering.renderer import RenderStats
 from .masks import classify_pixels, face_mask, triangle_mask
 from .metrics import (REGIONS, composite_psnr, coverage_picture, error_regions, over, psnr, psnr_two_truths,
@@ -105,12 +107,14 @@ def wrinkle_triangles(subject, params, threshold: float = 0.3) -> np.ndarray:
 
 def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, seed: int = 20261122,
              spp_truth: int = 1024, spp: int = 4, size: int | None = None, progress: bool = True,
-             pictures: Path | None = None) -> dict:
-    """Run every case under every environment (``progress``: a bar over them); returns a JSON-able report."""
+             pictures: Path | None = None, executor=None) -> dict:
+    """Run every case under every environment (``progress``: a bar over them); returns a JSON-able report.
+
+    ``executor`` (:mod:`mifacerf.execution`; default: this process) runs each (case, environment) as one
+    unit (:func:`run_case`); the report lists them in the same order with the same truth seeds."""
     from ..imageio import write_png
     from ..pictures import grid
-    from ..progress import bar
-    from ..rendering.api import environment_plate, load_model
+    from ..rendering.api import load_model
     from ..synthetic.truth_scene import TruthRenderer
 
     tr = TruthRenderer.from_synth(out)
@@ -120,45 +124,14 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
     jobs = [(c, e) for c in cases for e in envs]
     tiles = []
     report = {"seed": seed, "spp_truth": spp_truth, "spp": spp, "envs": list(envs), "cases": []}
-    for case, env in bar(jobs, progress, desc="cases"):
-        cam = case.camera if size is None else case.camera.resized(size, size)
-        seed_t = int(rng.integers(1 << 30))
-        halves = [tr.render(case.params, cam, env, spp=max(1, spp_truth // 2), seed=seed_t + k) for k in (0, 1)]
-        truth = 0.5 * (halves[0] + halves[1])
-        sc = tr.scene(face.environment(env))
-        classes = classify_pixels(sc, cam, spp=4)
-        modelled = face_mask(classes)
-        mask = modelled & (truth[..., 3] > 0.999)
-        stats = RenderStats()
-        face.renderer.cache_frames = False   # time a real render, not the unchanged-frame cache
-        face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=spp)  # warm (kernels, fields)
-        t0 = time.perf_counter()
-        img = face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=spp, stats=stats)
-        seconds = time.perf_counter() - t0
-        m = mask & (img[..., 3] > 0.999)
-        err = psnr_two_truths(img, halves[0], halves[1], m)
-        entry = {"case": case.kind, "label": case.label, "env": env, "psnr": err["psnr"],
-                 "psnr_noise_corrected": err["psnr_noise_corrected"], "truth_noise_psnr": err["noise_floor"],
-                 "coverage": float(m.sum() / max(mask.sum(), 1)), "seconds": seconds,
-                 "stages": {k: round(v, 4) for k, v in stats.times.items()}, "pixels": int(m.sum()),
-                 "fields": len(stats.fields_loaded)}
-        plate = environment_plate(face.environment(env), cam)
-        share, _ = uncovered(img[..., 3], truth[..., 3])
-        entry.update({"psnr_composite": composite_psnr(img, truth, plate),
-                      "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share,
-                      "regions": error_regions(img, truth, plate, modelled)})
-        if case.kind == "d":
-            wr = triangle_mask(classes, wrinkle_triangles(tr.subject, case.params)) & m
-            neutral = _neutral_render(face, case, cam, env, spp)
-            entry["wrinkle_pixels"] = int(wr.sum())
-            if wr.sum() > 20:
-                entry["psnr_wrinkles"] = psnr(img, truth, wr)
-                entry["psnr_wrinkles_neutral_only"] = psnr(neutral, truth, wr)
-            entry["psnr_neutral_only"] = psnr(neutral, truth, m & (neutral[..., 3] > 0.999))
+    seeds = [int(rng.integers(1 << 30)) for _ in jobs]   # one per job, drawn in the jobs' order as before
+    units = [(case, env, seed_t, pictures is not None and i < 24) for i, ((case, env), seed_t) in
+             enumerate(zip(jobs, seeds))]
+    context = CaseContext(out, model_path, spp_truth, spp, size, tr, face)
+    for entry, case_pictures in (executor or Executor()).imap(run_case, units, context, desc="cases",
+                                                              unit="case", progress=progress):
         report["cases"].append(entry)
-        if pictures is not None and len(tiles) < 24 * 4:
-            t = 192
-            tiles += case_tiles(img, truth, plate, entry, t)
+        tiles += case_pictures
     by = {}
     for e in report["cases"]:
         by.setdefault(e["case"], []).append(e)
@@ -178,6 +151,74 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
         pictures.parent.mkdir(parents=True, exist_ok=True)
         write_png(pictures, grid(tiles, 4))
     return report
+
+
+class CaseContext:
+    """What every case unit shares: the synth output, the model, the sample counts, the image size.
+
+    Pickled (sent to a worker) it keeps the folders instead of the truth renderer and the model; a worker
+    opens them once (:func:`mifacerf.execution.worker_cached`) for all its cases."""
+
+    def __init__(self, out, model_path, spp_truth: int, spp: int, size: int | None, tr=None, face=None):
+        self.out, self.model_path = str(out), str(model_path)
+        self.spp_truth, self.spp, self.size, self._tr, self._face = spp_truth, spp, size, tr, face
+
+    def __getstate__(self):
+        return {**self.__dict__, "_tr": None, "_face": None}
+
+    def opened(self):
+        """(TruthRenderer, FaceModel)."""
+        if self._tr is None:
+            from ..rendering.api import load_model
+            from ..synthetic.truth_scene import TruthRenderer
+
+            stamp = os.stat(Path(self.model_path) / "model.json").st_mtime_ns
+            self._tr, self._face = worker_cached(("render cases", self.out, self.model_path, stamp), lambda: (
+                TruthRenderer.from_synth(self.out), load_model(self.model_path)))
+        return self._tr, self._face
+
+
+def run_case(context: CaseContext, unit: tuple) -> tuple[dict, list]:
+    """One case under one environment, ``unit = (case, env, truth seed, picture?)`` → (report entry, its
+    row of ``cases.png`` or [])."""
+    from ..rendering.api import environment_plate
+
+    case, env, seed_t, picture = unit
+    tr, face = context.opened()
+    cam = case.camera if context.size is None else case.camera.resized(context.size, context.size)
+    halves = [tr.render(case.params, cam, env, spp=max(1, context.spp_truth // 2), seed=seed_t + k) for k in (0, 1)]
+    truth = 0.5 * (halves[0] + halves[1])
+    sc = tr.scene(face.environment(env))
+    classes = classify_pixels(sc, cam, spp=4)
+    modelled = face_mask(classes)
+    mask = modelled & (truth[..., 3] > 0.999)
+    stats = RenderStats()
+    face.renderer.cache_frames = False   # time a real render, not the unchanged-frame cache
+    face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=context.spp)  # warm (kernels, fields)
+    t0 = time.perf_counter()
+    img = face.render(case.expression, mesh=case.mesh, camera=cam, env=env, spp=context.spp, stats=stats)
+    seconds = time.perf_counter() - t0
+    m = mask & (img[..., 3] > 0.999)
+    err = psnr_two_truths(img, halves[0], halves[1], m)
+    entry = {"case": case.kind, "label": case.label, "env": env, "psnr": err["psnr"],
+             "psnr_noise_corrected": err["psnr_noise_corrected"], "truth_noise_psnr": err["noise_floor"],
+             "coverage": float(m.sum() / max(mask.sum(), 1)), "seconds": seconds,
+             "stages": {k: round(v, 4) for k, v in stats.times.items()}, "pixels": int(m.sum()),
+             "fields": len(stats.fields_loaded)}
+    plate = environment_plate(face.environment(env), cam)
+    share, _ = uncovered(img[..., 3], truth[..., 3])
+    entry.update({"psnr_composite": composite_psnr(img, truth, plate),
+                  "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share,
+                  "regions": error_regions(img, truth, plate, modelled)})
+    if case.kind == "d":
+        wr = triangle_mask(classes, wrinkle_triangles(tr.subject, case.params)) & m
+        neutral = _neutral_render(face, case, cam, env, context.spp)
+        entry["wrinkle_pixels"] = int(wr.sum())
+        if wr.sum() > 20:
+            entry["psnr_wrinkles"] = psnr(img, truth, wr)
+            entry["psnr_wrinkles_neutral_only"] = psnr(neutral, truth, wr)
+        entry["psnr_neutral_only"] = psnr(neutral, truth, m & (neutral[..., 3] > 0.999))
+    return entry, (case_tiles(img, truth, plate, entry, 192) if picture else [])
 
 
 def case_tiles(img, truth, plate, entry: dict, size: int = 192) -> list:

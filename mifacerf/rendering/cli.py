@@ -5,6 +5,7 @@ from pathlib import Path
 
 import click
 
+from ..execution import executor_options
 from .compression import DEFAULT_COMPRESS_METHOD, compressing_methods
 
 
@@ -97,13 +98,19 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
               help="Compression method (mifacerf.rendering.compression.COMPRESSION_METHODS).")
 @click.option("--rank", type=click.IntRange(min=1), multiple=True, default=(8,), show_default=True,
               help="Coefficients per texel (repeat for several).")
-def compress_cmd(model, method, rank):
-    """Add PCA-compressed versions of every reflectance field to a model."""
+@executor_options
+def compress_cmd(model, method, rank, workers, cluster):
+    """Add PCA-compressed versions of every reflectance field to a model.
+
+    The fields are compressed by a local cluster (one worker process per core), the scheduler at --cluster,
+    or this process alone with --workers 1; this process writes them (docs/distributed.md)."""
+    from ..execution import open_executor
     from .compression import compress_model
     from .model import Model
 
     m = Model(model)
-    info = compress_model(m, list(rank), method=method)
+    with open_executor(workers, cluster, shared=[model]) as executor:
+        info = compress_model(m, list(rank), method=method, executor=executor)
     sizes = info["bytes"] if isinstance(info["bytes"], dict) else {rank[0]: info["bytes"]}
     for k, b in sizes.items():
         click.echo(f"rank {k}: {info['fields']} fields, {b / 1e6:.1f} MB")

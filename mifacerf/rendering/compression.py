@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..execution import Executor, worker_cached
 from ..formats.files import save_npz_atomic
 from ..formats.model import update_model
 from ..jitarrays import to_jit
@@ -81,12 +82,43 @@ def compressed_path(model_root, expression: str, camera: str, rank: int, method:
     return Path(model_root) / "fields" / expression / f"{camera}.{method}{rank}.npz"
 
 
-def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COMPRESS_METHOD) -> dict:
+class CompressContext:
+    """What every field unit of :func:`compress_model` shares: the model, the method, the ranks. Pickled (sent
+    to a worker) it keeps the model's folder; a worker opens it once (:func:`mifacerf.execution.worker_cached`)."""
+
+    def __init__(self, model, method: str, ranks: list[int]):
+        self._model, self.root, self.method, self.ranks = model, str(model.root), method, ranks
+
+    def __getstate__(self):
+        return {**self.__dict__, "_model": None}
+
+    def model(self):
+        if self._model is None:
+            import os
+
+            from .model import Model
+
+            stamp = os.stat(Path(self.root) / "model.json").st_mtime_ns
+            self._model = worker_cached(("model folder", self.root, stamp), lambda: Model(self.root))
+        return self._model
+
+
+def compress_field_unit(context: CompressContext, unit: tuple) -> tuple[str, str, dict]:
+    """One field ``(s, c)`` compressed → (expression, camera, {rank: compressed arrays})."""
+    model = context.model()
+    f = model.field(*unit)
+    return f.expression, f.camera, compression_method(context.method).compress(np.asarray(f.rf), context.ranks,
+                                                                                model.light_directions)
+
+
+def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COMPRESS_METHOD,
+                   executor: Executor | None = None) -> dict:
     """Write the ``<method><rank>`` version of every field of a model (``rank``: an int or several, computed
     from one decomposition per field; ``method``: a :data:`COMPRESSION_METHODS` name that compresses;
-    ``progress``: a bar over the fields); returns {"bytes": {rank: ...}, "fields": n}."""
-    from ..progress import bar
+    ``progress``: a bar over the fields); returns {"bytes": {rank: ...}, "fields": n}.
 
+    ``executor`` (:mod:`mifacerf.execution`; default: this process) compresses each field as one unit
+    (:func:`compress_field_unit`); this process writes the results, in the fields' order, in one transaction."""
     compress = compression_method(method).compress
     if compress is None:
         raise ValueError(f"the {method!r} method renders the stored field itself; there is nothing to compress "
@@ -101,10 +133,11 @@ def compress_model(model, rank, progress: bool = True, method: str = DEFAULT_COM
 
     # one transaction: the files appear, listed in model.json, all at once (a kill leaves the model as it was)
     with update_model(model, what="compress") as update:
-        for s, c in bar(jobs, progress, desc=f"compress {method}", unit="field"):
-            f = model.field(s, c)
-            for r, comp in compress(np.asarray(f.rf), ranks, model.light_directions).items():
-                path = compressed_path(update.root, f.expression, f.camera, r, method)
+        done = (executor or Executor()).imap(compress_field_unit, jobs, CompressContext(model, method, ranks),
+                                             desc=f"compress {method}", unit="field", progress=progress)
+        for expression, camera, comps in done:
+            for r, comp in comps.items():
+                path = compressed_path(update.root, expression, camera, r, method)
                 save_npz_atomic(path, compressed=False, **comp)
                 update.add(path)
                 total[r] += path.stat().st_size
