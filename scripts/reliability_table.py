@@ -28,7 +28,12 @@ BEGIN, END = "<!-- reliability-table:begin -->", "<!-- reliability-table:end -->
 RULES = [
     (r"test_bad_options", r"every_command", ("every command", "bad option value (coverage)", "clear error")),
     (r"test_bad_options", r"\[(\S+) ", None),          # stage = the command in the parameter id
+    (r"test_steps", r"sigkill", ("demo", "kill (SIGKILL)", "recovered")),
     (r"test_steps", r"", ("demo", "second run, nothing changed", "correct, nothing to report")),
+    (r"test_model_transactions", r"template_inconsistent", ("build", "inconsistent input (template)", "clear error")),
+    (r"manifests", r"checked_when_read", ("capture/performance", "corrupt/truncate/delete a file", "clear error")),
+    (r"test_render_warnings", r"fails_writing", ("render", "full disk (ENOSPC)", "recovered")),
+    (r"test_cli_errors", r"locked", ("every command", "two processes (lock refused, exit 3)", "clear error")),
     (r"test_capture_cli_faults", r"zero_and_negative", ("capture", "bad option value", "clear error")),
     (r"test_capture_cli_faults", r"write_failure", ("capture", "full disk (ENOSPC)", "recovered")),
     (r"test_capture_cli_faults", r"bad_port", ("capture", "missing device", "recovered")),
@@ -40,6 +45,8 @@ RULES = [
     (r"test_corruption", r"registration", ("registration", "corrupt/truncate/delete a file", "clear error")),
     (r"test_corruption", r"capture", ("capture", "corrupt/truncate/delete a file", "clear error")),
     (r"test_cli_errors", r"", ("every command", "error reporting", "clear error")),
+    (r"test_output_transactions", r"refused_with_exit_3", (None, "two processes", "clear error")),
+    (r"test_output_transactions", r"dropped_unfinished", (None, "failed step / refused input", "recovered")),
     (r"transactions|atomic|manifests", r"sigkill|interrupted", (None, "kill (SIGKILL)", "recovered")),
     (r"transactions|atomic|manifests", r"full_disk", (None, "full disk (ENOSPC)", "recovered")),
     (r"transactions|atomic|manifests", r"two_|lock|thread", (None, "two processes", "recovered")),
@@ -54,6 +61,19 @@ STAGE_OF_MODULE = {"test_model_transactions": "build", "test_registration_transa
                    "capture/performance"}
 
 
+#: module -> [(test-name regex, stage)]: the stage of a module's tests by name (before STAGE_OF_MODULE)
+STAGE_BY_NAME = {"test_model_transactions": [(r"compress", "compress")],
+                 "test_output_transactions": [(r"drive", "drive"), (r"track", "track"),
+                                              (r"output_folder", "formats (files, locks)")]}
+
+
+def stage_of(module: str, name: str) -> str:
+    for rx, stage in STAGE_BY_NAME.get(module, []):
+        if re.search(rx, name):
+            return stage
+    return STAGE_OF_MODULE.get(module, module)
+
+
 def classify(module: str, name: str) -> tuple[str, str, str]:
     for mod_rx, name_rx, what in RULES:
         if re.search(mod_rx, module) and re.search(name_rx, name):
@@ -61,7 +81,7 @@ def classify(module: str, name: str) -> tuple[str, str, str]:
                 cmd = re.search(r"\[(.+?) (-|[A-Z_]+=)", name)
                 return (cmd.group(1) if cmd else "?", "bad option value", "clear error")
             stage, cls, outcome = what
-            return stage or STAGE_OF_MODULE.get(module, module), cls, outcome
+            return stage or stage_of(module, name), cls, outcome
     return module, "other", "clear error"
 
 

@@ -48,6 +48,23 @@ def killed(proc) -> bool:
     return proc.returncode == -signal.SIGKILL
 
 
+def hold_lock(folder, error):
+    """A thread holding ``folder``'s FolderLock (flock treats another thread's descriptor as another holder,
+    as another process would be); returns the function that releases it."""
+    from mifacerf.formats.files import FolderLock
+
+    held, done = threading.Event(), threading.Event()
+
+    def hold():
+        with FolderLock(folder, error):
+            held.set()
+            done.wait(60)
+    t = threading.Thread(target=hold)
+    t.start()
+    held.wait(30)
+    return lambda: (done.set(), t.join())
+
+
 class ENOSPC:
     """``monkeypatch.setattr(os, "fsync", ENOSPC(n))``: the n-th fsync of a file fails with 'No space left on
     device' (every atomic write fsyncs its file before the rename)."""

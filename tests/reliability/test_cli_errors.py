@@ -108,25 +108,16 @@ def test_a_locked_folder_exits_3_also_through_a_click_error(extra_command, tmp_p
             raise
     main.add_command(cmd)
     try:
-        import threading
+        from .faults import hold_lock
 
-        held, done = threading.Event(), threading.Event()
-
-        def holder():             # another thread is another holder (flock per descriptor)
-            with FolderLock(folder, ModelError):
-                held.set()
-                done.wait(30)
-        t = threading.Thread(target=holder)
-        t.start()
-        held.wait(30)
+        release = hold_lock(folder, ModelError)
         try:
             for args in ([], ["--wrap"]):
                 r = CliRunner().invoke(main, ["locked", *args])
                 assert r.exit_code == EXIT_REFUSED, (args, r.output)
                 assert "locked by PID" in one_error_line(r, "locked")
         finally:
-            done.set()
-            t.join()
+            release()
     finally:
         main.commands.pop("locked", None)
 

@@ -6,17 +6,16 @@ import errno
 import json
 import os
 import random
-import threading
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from mifacerf.errors import EXIT_REFUSED, RefusedError
-from mifacerf.formats.files import FolderLock, OutputFolder, repair_if_needed
+from mifacerf.formats.files import OutputFolder, repair_if_needed
 from mifacerf.tracking.track import TrackError
 
-from .faults import ENOSPC, killed, run_child, siblings, snapshot, start_child
+from .faults import ENOSPC, hold_lock, killed, run_child, siblings, snapshot, start_child
 from .stand_ins import drive_state, make_track, run_drive
 
 
@@ -78,20 +77,6 @@ def test_sigkill_during_drive_at_every_rename_and_at_random_moments(driven):
             old = snapshot(out)
 
 
-def _hold(folder, error):
-    """A thread holding ``folder``'s lock (another holder, as another process would be) until released."""
-    held, done = threading.Event(), threading.Event()
-
-    def hold():
-        with FolderLock(folder, error):
-            held.set()
-            done.wait(60)
-    t = threading.Thread(target=hold)
-    t.start()
-    held.wait(30)
-    return lambda: (done.set(), t.join())
-
-
 def test_two_drives_on_one_folder_the_second_is_refused_with_exit_3(driven, monkeypatch, tmp_path):
     from mifacerf.cli import main
     from mifacerf.rendering import api
@@ -99,7 +84,7 @@ def test_two_drives_on_one_folder_the_second_is_refused_with_exit_3(driven, monk
     from .stand_ins import StandInFace
 
     track, out, old = driven
-    release = _hold(out, TrackError)
+    release = hold_lock(out, TrackError)
     try:
         with pytest.raises(TrackError, match=r"locked by PID \d+ .* \(another drive is running") as exc:
             run_drive(str(track), str(out), shade=0.9)
@@ -161,7 +146,7 @@ def test_two_tracks_on_one_folder_the_second_is_refused_with_exit_3(tracked):
     from mifacerf.cli import main
 
     perf, track, old = tracked
-    release = _hold(track, TrackError)
+    release = hold_lock(track, TrackError)
     try:
         r = CliRunner().invoke(main, ["track", str(perf)])
         assert r.exit_code == EXIT_REFUSED, r.output
