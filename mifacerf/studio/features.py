@@ -46,6 +46,33 @@ def lip_blob(img: np.ndarray, face: np.ndarray, lip_chroma: float = LIP_CHROMA) 
     return comps[0] if comps else None
 
 
+def lips_region(img: np.ndarray, face: np.ndarray, lip_chroma: float = LIP_CHROMA) -> np.ndarray | None:
+    """Both lips (an open mouth parts them into two blobs): the largest red blob and every other at least
+    a third its size."""
+    ch = _chroma(img.astype(np.float64))
+    skin = np.median(ch[face], axis=0)
+    red = face & ((ch[..., 0] - skin[0]) > lip_chroma) & ((skin[1] - ch[..., 1]) > 0.4 * lip_chroma)
+    comps = _largest(red, min_px=6, keep=3)
+    if not comps:
+        return None
+    big = comps[0].sum()
+    out = comps[0].copy()
+    for c in comps[1:]:
+        if c.sum() >= big / 3:
+            out |= c
+    return out
+
+
+def mouth_corners(region: np.ndarray) -> np.ndarray:
+    """(2, 2) the lips' two ends (u, v), left then right: the mean row of the end columns' lip pixels."""
+    cols = np.flatnonzero(region.any(0))
+    out = []
+    for u, side in ((cols[0], -0.5), (cols[-1], 0.5)):
+        rows = np.flatnonzero(region[:, u])
+        out.append((u + side, rows.mean()))
+    return np.array(out, np.float64)
+
+
 def mouth_line(img: np.ndarray, blob: np.ndarray) -> np.ndarray | None:
     """(n, 2) pixels (u, v) of the mouth line, one per column of the lip blob, left to right."""
     from scipy.ndimage import gaussian_filter1d

@@ -133,6 +133,7 @@ def propose_expression(session, name: str) -> dict:
         nodot = vis[c] & ~tpl.is_dot[coarse]
         clicks[c, good] = pk[good]
         clicks[c, nodot] = uvV[c, nodot]
+    moved = _mouth_corners_from_images(session, name, tpl, coarse, clicks, vis, fp)
     tr = triangulate(session.cams, clicks, max_error=1.0)
     ok = tr.ok & (tr.max_error <= 1.0)
     state = {"coarse": {}, "rotoscope": {"curves": {}, "points": {}, "eyes_look_at": None}, "overrides": {}}
@@ -210,13 +211,96 @@ def propose_expression(session, name: str) -> dict:
             state["rotoscope"]["points"]["lower_teeth"] = {
                 c: np.round(session.camera(c).project(p[None])[0][0], 3).tolist() for c in views}
     state["rotoscope"]["eyes_look_at"] = rot_src.get("eyes_look_at")
+    flagged = flag_coarse(session, tpl, R, state["coarse"], tr.max_error, coarse, fp)
+    for v, d in moved.items():
+        flagged.setdefault("moved", {})[str(v)] = f"moved {d:.1f} px to the lips' end in the images"
     n_ok = int(ok.sum())
-    return {"source": src, "state": state, "unsure_coarse": coarse[unsure].tolist(),
+    return {"source": src, "state": state, "unsure_coarse": coarse[unsure].tolist(), "flagged": flagged,
             "note": f"from {src}: {n_ok} of {len(coarse)} coarse points found on this expression's dots"
                     + (f" ({int(unsure.sum())} left for you: {coarse[unsure].tolist()}, not found on a dot)"
                        if unsure.any() else "") + "; "
                     f"{len(state['rotoscope']['curves'])} curves and {len(state['rotoscope']['points'])} marks "
                     "projected from the template carried by the dots"}
+
+
+def _mouth_corners_from_images(session, name: str, tpl, coarse: np.ndarray, clicks: np.ndarray, vis: np.ndarray,
+                               fp: float, reach_px: float = 15.0) -> dict:
+    """Coarse points that are mouth corners (kind ``lip_corner``) clicked where the lips end in each view
+    (:func:`.features.mouth_corners`; the end nearest the followed template's corner, within ``reach_px``)
+    in the two views facing the mouth most directly (seen from the side, the lips end at their silhouette,
+    not at the corner), instead of at the followed template's projection: an open jaw drags the
+    template's corners onto the wrong dots, the lips' colour does not move with them. ``clicks`` (C, K, 2)
+    is changed in place (the other views' clicks of those points dropped); returns {vertex id: how far
+    (px, the views' median) the clicks moved}."""
+    from .features import lips_region, mouth_corners
+    from ..registration.dots import face_mask
+
+    js = [j for j, v in enumerate(coarse) if tpl.kinds[int(v)] == "lip_corner"]
+    if not js:
+        return {}
+    ends = {}
+    X = tpl.vertices[coarse[js]].mean(0)
+    facing = set(_best_views(session, X[None], np.array([0.0, 0.0, 1.0]), 2))
+    for c, cam in enumerate(session.cams):
+        if cam.name not in facing:
+            continue
+        img = session.float_image(name, cam.name, "diffuse")
+        region = lips_region(img, face_mask(img))
+        if region is not None:
+            ends[c] = mouth_corners(region)
+    moved = {}
+    for j in js:
+        shifts = []
+        for c, e in ends.items():
+            if not vis[c, j] or not np.isfinite(clicks[c, j]).all():
+                continue
+            d = np.linalg.norm(e - clicks[c, j], axis=1)
+            k = int(np.argmin(d))
+            if d[k] <= reach_px:
+                shifts.append(float(d[k]))
+                clicks[c, j] = e[k]
+        if len(shifts) == 2:
+            for c in range(len(session.cams)):
+                if c not in ends:
+                    clicks[c, j] = np.nan
+            if np.median(shifts) > 1.0:
+                moved[int(coarse[j])] = float(np.median(shifts))
+    return moved
+
+
+#: a proposed coarse point is flagged when its views disagree by more than this (px) ...
+FLAG_REPROJ_PX = 0.6
+#: ... or when it is farther than this (pixel footprints) from where the other coarse points' motion
+#: from the reference (moving-least-squares affine, leave-one-out) puts it
+FLAG_MORPH_PX = 8.0
+
+
+def flag_coarse(session, tpl, R, coarse_state: dict, max_error: np.ndarray, coarse: np.ndarray, fp: float) -> dict:
+    """{"coarse": {vertex id: reason}}: proposed coarse points that look wrong — views that disagree
+    (reprojection residual above :data:`FLAG_REPROJ_PX`), or a motion from the reference ``R`` that its
+    neighbours do not share (leave-one-out MLS-affine prediction from the other proposed coarse points
+    farther than :data:`FLAG_MORPH_PX` footprints; a point landed on a neighbouring dot shows as one dot
+    spacing off). The page draws them in the flagged colour and the note lists them."""
+    from ..geometry.schaefer2006 import mls_affine
+
+    out = {}
+    ids = [int(v) for v in coarse_state]
+    j_of = {int(v): j for j, v in enumerate(coarse)}
+    for v in ids:
+        e = float(max_error[j_of[v]])
+        if np.isfinite(e) and e > FLAG_REPROJ_PX:
+            out[str(v)] = f"its views disagree by {e:.2f} px"
+    if len(ids) >= 6:
+        src = R.vertices[ids]
+        dst = np.array([coarse_state[str(v)]["position"] for v in ids])
+        for k, v in enumerate(ids):
+            others = [i for i in range(len(ids)) if i != k]
+            pred = mls_affine(src[others], dst[others], src[k:k + 1], k=6)[0]
+            off = float(np.linalg.norm(pred - dst[k])) / fp
+            if off > FLAG_MORPH_PX:
+                out[str(v)] = (out.get(str(v), "") + "; " if str(v) in out else "") + \
+                    f"{off:.1f} px from where the other coarse points' motion puts it"
+    return {"coarse": out}
 
 
 def _blurred(m: np.ndarray, sigma: float) -> np.ndarray:

@@ -12,6 +12,9 @@ Routes (all ``/api/`` routes need the per-launch token, :mod:`.security`):
 ``POST /api/triangulate``                   ``{"clicks": {camera: [u, v]}, "depth_from": [x, y, z]?}``
 ``GET /api/proposals/<e>``                  proposed hand state from the nearest registered expression
 ``POST /api/proposals/template``            propose a template from the neutral's images (``{"accept": bool}``)
+``GET /api/template``                       ``hand/template.json`` for editing, its version, its projections
+``PUT /api/template``                       save an edited template (``{"version", "template"}``; 409 if stale)
+``POST /api/project``                       ``{"positions": [[x, y, z], ...]}`` → their pixels in every camera
 ``POST /api/register/<e>``                  register the expression in the background → a job
 ``GET /api/jobs/<id>``                      the job's state, step and progress
 ``GET /api/file?path=<relative path>``      a file inside the capture folder (hand inputs, reports)
@@ -142,6 +145,19 @@ def create_app(capture: str | Path | Session, token: str, hosts: set[str]) -> St
             res["accepted"] = True
         return _json(res)
 
+    async def template_get(request):
+        return _json(await run_in_threadpool(session.template_for_editing))
+
+    async def template_put(request):
+        d = await _body(request)
+        res = await run_in_threadpool(session.save_template_edit, d.get("template"), d.get("version"),
+                                      d.get("renumber"))
+        return _json(res)
+
+    async def project(request):
+        d = await _body(request)
+        return _json(await run_in_threadpool(session.project_all, d.get("positions") or []))
+
     async def register(request):
         name = session.check_expression(request.path_params["name"])
         if session.template() is None:
@@ -170,6 +186,9 @@ def create_app(capture: str | Path | Session, token: str, hosts: set[str]) -> St
         Route("/api/triangulate", guarded(triangulate), methods=["POST"]),
         Route("/api/proposals/template", guarded(template_proposal), methods=["POST"]),
         Route("/api/proposals/{name}", guarded(proposals)),
+        Route("/api/template", guarded(template_get)),
+        Route("/api/template", guarded(template_put), methods=["PUT"]),
+        Route("/api/project", guarded(project), methods=["POST"]),
         Route("/api/register/{name}", guarded(register), methods=["POST"]),
         Route("/api/jobs/{id}", guarded(job)),
         Route("/api/file", guarded(file)),

@@ -38,6 +38,12 @@ from .images import KINDS, LRU, encode_png, tone_map
 from ..errors import MifacerfError
 
 CURVE_NAMES = MARGIN_NAMES + ("iris_L", "iris_R")
+#: vertex kinds of ``mifacerf.template/1`` (docs/registration.md)
+TEMPLATE_KINDS = ("dot", "lip_upper", "lip_lower", "lip_corner", "lid_upper", "lid_lower", "lid_corner", "nostril",
+                  "ear", "nose_bridge")
+#: the culling regions (docs/registration.md; blending.culling.REGION_NAMES and the synthetic subject's nose)
+REGION_NAMES = ("forehead", "nose", "eye_left", "eye_right", "cheek_left", "cheek_right", "mouth", "chin",
+                "throat", "neck")
 POINT_NAMES = ("lower_teeth",) + HEAD_POINT_NAMES
 #: how the page colours a vertex (registration.json + expressions/<expr>.npz, docs/studio.md)
 STATUS_CODES = ("snapped", "consensus", "single_view", "failed", "flagged", "hand_fixed", "placed", "predicted")
@@ -268,6 +274,94 @@ class Session:
         self.hand.mkdir(parents=True, exist_ok=True)
         with self.lock:
             write_json_atomic(self.hand / "template.json", doc)
+
+    # ------------------------------------------------------------------ template editing (the neutral)
+    def template_doc(self) -> dict | None:
+        """``hand/template.json`` as a dict (None if missing)."""
+        return _read(self.hand / "template.json")
+
+    def template_version(self) -> str:
+        return _digest(self.template_doc())
+
+    def project_all(self, positions) -> dict:
+        """{camera: [[u, v], ...]} of 3-D points (n, 3) (-1e4 where a point is behind a camera)."""
+        X = np.asarray(positions, np.float64).reshape(-1, 3)
+        if len(X) == 0:
+            return {c.name: [] for c in self.cams}
+        return {c.name: np.round(np.nan_to_num(c.project(X)[0], nan=-1e4), 3).tolist() for c in self.cams}
+
+    def template_for_editing(self) -> dict:
+        doc = self.template_doc()
+        if doc is None:
+            return {"version": _digest(None), "template": None, "uv": {}, "problem": self._tpl_problem}
+        try:
+            P = [v["position"] for v in doc.get("vertices", [])]
+            uv = self.project_all(P)
+        except (KeyError, TypeError, ValueError):
+            uv = {}
+        self.template()
+        return {"version": _digest(doc), "template": doc, "uv": uv, "problem": self._tpl_problem,
+                "kinds": list(TEMPLATE_KINDS) + sorted({v.get("kind") for v in doc.get("vertices", [])}
+                                                       - set(TEMPLATE_KINDS) - {None}),
+                "region_names": list(REGION_NAMES) + sorted(set(doc.get("regions") or {}) - set(REGION_NAMES))}
+
+    def save_template_edit(self, doc: dict, base_version: str | None, renumber: list | None = None) -> dict:
+        """Write an edited template (checked by the registration's reader, margins, regions and head points
+        inside it); refused with :class:`Conflict` if the file changed since ``base_version``. ``renumber``
+        (old vertex id → new id, -1 for a deleted vertex; one entry per vertex of the file on disk): the
+        coarse points and fixes of every expression (``coarse_points.json``, ``overrides.json``) follow."""
+        if not isinstance(doc, dict):
+            raise StudioError("template must be a JSON object")
+        doc = dict(doc)
+        doc.setdefault("schema", "mifacerf.template/1")
+        try:
+            tpl = Template.from_dict(doc, "edited template")
+        except HandInputError as exc:
+            raise StudioError(str(exc)) from exc
+        n = tpl.n_vertices
+        for k in tpl.kinds:
+            if not k or not isinstance(k, str):
+                raise StudioError(f"a vertex without a kind (e.g. {', '.join(TEMPLATE_KINDS)})")
+        for what, groups in (("margin", tpl.margins), ("region", tpl.regions)):
+            for name, ids in groups.items():
+                ids = np.asarray(ids)
+                if ids.size and (ids.min() < 0 or ids.max() >= n):
+                    raise StudioError(f"{what} {name}: vertex ids out of range (template has {n})")
+        for name, vid in tpl.head_points.items():
+            if not 0 <= int(vid) < n:
+                raise StudioError(f"head point {name}: vertex {vid} out of range")
+        with self.lock:
+            cur = self.template_doc()
+            cur_v = _digest(cur)
+            if base_version != cur_v:
+                kept = self._keep_conflict("template", doc)
+                raise Conflict(f"hand/template.json changed elsewhere (another tab?) since this page loaded it; "
+                               f"your version is kept in {kept}", cur, cur_v, kept)
+            if renumber is not None:
+                n_old = len((cur or {}).get("vertices", []))
+                m = [int(x) for x in renumber]
+                if len(m) != n_old or any(not -1 <= x < n for x in m):
+                    raise StudioError(f"renumber: {len(m)} entries for {n_old} vertices, or ids out of range")
+            doc["edited_by"] = "mifacerf studio"
+            self.hand.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(self.hand / "template.json", doc)
+            if renumber is not None and m != list(range(n_old)):
+                self._renumber_hand(m, tpl)
+        return {"version": _digest(doc), "uv": self.project_all([v["position"] for v in doc["vertices"]])}
+
+    def _renumber_hand(self, m: list, tpl: Template) -> None:
+        """Renumber the vertex ids of every expression's coarse points and fixes (``m``: old → new, -1 gone)."""
+        def remap(entry: dict) -> dict:
+            return {str(m[int(k)]): v for k, v in entry.items() if 0 <= int(k) < len(m) and m[int(k)] >= 0}
+        cp = _read(self.hand / "coarse_points.json")
+        if cp is not None:
+            cp["expressions"] = {e: remap(d) for e, d in (cp.get("expressions") or {}).items()}
+            cp["coarse_points"] = tpl.coarse.tolist()
+            write_json_atomic(self.hand / "coarse_points.json", cp)
+        if overrides_path(self.root).exists():
+            ov = read_overrides(self.root)
+            ov["expressions"] = {e: remap(d) for e, d in ov["expressions"].items()}
+            write_json_atomic(overrides_path(self.root), ov)
 
     # ------------------------------------------------------------------ registration
     def registration_meta(self) -> dict:

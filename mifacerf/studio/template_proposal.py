@@ -13,8 +13,9 @@
 3. **Connected by a surface triangulation**: Delaunay in (azimuth, height) about the vertical axis, as
    seen from in front (:func:`~mifacerf.registration.hand.auto_coarse_triangles`' projection), without
    the long hull edges.
-4. **Coarse points**: ``n_coarse`` fiducials spread over the face (farthest-point sampling from the
-   one nearest the centre), with their Delaunay mesh.
+4. **Coarse points**: the two mouth corners (step 5) and ``n_coarse`` − 2 fiducials spread over the face
+   (farthest-point sampling from the one nearest the centre, among the dots seen by three or more views
+   and by two at cos ≥ 0.5), with their Delaunay mesh.
 
 5. **Mouth and eyes** from the proxy images (:mod:`.features`): the lip margins from the mouth line (the
    darkest row of the red lip blob, lifted to 3-D by the other views' mouth lines with the dots' surface as
@@ -355,7 +356,9 @@ def propose_template(session, n_coarse: int = 18, min_peak: float = 0.3) -> dict
     pool = np.flatnonzero((nv >= min(3, nv.max())) & (seen >= 2))
     if len(pool) < n_coarse:
         pool = np.arange(len(P))
-    coarse = pool[spread_points(P[pool], n_coarse)]
+    corners = [margins["lip_upper"][0], margins["lip_upper"][-1]] if "lip_upper" in margins else []
+    coarse = np.concatenate([pool[spread_points(P[pool], n_coarse - len(corners))],
+                             np.asarray(corners, np.int64)]).astype(np.int64)
     head = head_point_dots(P, frame)
     eyes = {("eye_left" if s == "L" else "eye_right"): {
         "centre": np.round(e["centre"], 7).tolist(), "radius": e["radius"], "iris_radius": round(e["iris_radius"], 7),
@@ -366,7 +369,7 @@ def propose_template(session, n_coarse: int = 18, min_peak: float = 0.3) -> dict
            "vertices": [{"kind": v["kind"], "name": v["name"], "position": np.round(v["position"], 7).tolist()}
                         for v in verts],
            "triangles": F.tolist(), "coarse_points": coarse.tolist(),
-           "coarse_triangles": auto_coarse_triangles(P[coarse]).tolist(),
+           "coarse_triangles": auto_coarse_triangles(V[coarse]).tolist(),
            "margins": {k: [int(i) for i in v] for k, v in margins.items()},
            "holes": {k: [int(i) for i in v] for k, v in holes.items()},
            "regions": {k: [int(i) for i in v] for k, v in regions.items()},

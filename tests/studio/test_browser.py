@@ -342,3 +342,178 @@ def test_two_tabs_the_second_is_told(browser, served):
     _idle(d)
     rot = json.loads((served.capture / "hand" / "rotoscope" / "smile.json").read_text())
     assert "lower_teeth" in rot["points"]
+
+
+def _far_apart(uv: np.ndarray, ids) -> int:
+    """The id among ``ids`` whose projection is farthest from every other's (the pointer takes that one)."""
+    ids = list(ids)
+    P = uv[ids]
+    dist = np.linalg.norm(P[:, None] - P[None], axis=-1) + 1e9 * np.eye(len(ids))
+    return ids[int(np.argmax(dist.min(1)))]
+
+
+def test_editing_the_template_on_the_neutral(browser, served):
+    """Move a vertex, delete and flip triangles, add a vertex from two views, put a vertex in a region,
+    delete a vertex (the smile's coarse points renumbered with it) and undo; each edit lands in
+    hand/template.json at once."""
+    from mifacerf.formats.capture import Capture
+
+    d = browser
+    cams = {c.name: c for c in Capture(served.capture).rig.cameras}
+    _open(d, served)
+    _tool(d, "template")
+    _wait(d, "return studio.tpl && studio.tpl.doc", what="the template")
+    path = served.capture / "hand" / "template.json"
+    doc0 = json.loads(path.read_text())
+    n0, f0 = len(doc0["vertices"]), len(doc0["triangles"])
+
+    def saved():
+        try:
+            _wait(d, "return !studio.tplDirty && !studio.tplSaving", what="the template save")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: {d.find_element('id', 'tpl-status').text} {d.get_log('browser')}") from None
+        return json.loads(path.read_text())
+    q = _px_per_css(d, "cam1")
+    uv = np.asarray(d.execute_script("return studio.tpl.uv.cam1"))
+    inside = [i for i, p in enumerate(uv) if 20 < p[0] < 108 and 20 < p[1] < 108
+              and doc0["vertices"][i]["kind"] == "dot"]
+    # move: drag a dot vertex 2 px right in cam1: on cam1's ray at its depth
+    vid = _far_apart(uv, inside)
+    _select(d, "tpl-op", "move")
+    target = uv[vid] + [2.0, -1.0]
+    _click(d, "cam1", *uv[vid], drag_to=target)
+    _wait(d, "return studio.tundo.length === 1", what="the move")
+    doc = saved()
+    X = np.asarray(doc["vertices"][vid]["position"])
+    assert np.abs(cams["cam1"].project(X[None])[0][0] - target).max() <= q
+    assert abs(cams["cam1"].project(X[None])[1][0]
+               - cams["cam1"].project(np.asarray(doc0["vertices"][vid]["position"])[None])[1][0]) < 1e-6
+    # delete a triangle, flip another: click inside each (at its centroid in cam1)
+    uv = np.asarray(d.execute_script("return studio.tpl.uv.cam1"))
+    F = np.asarray(doc["triangles"])
+    cen = uv[F].mean(1)
+    area = np.abs(np.cross(uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]])) / 2
+
+    def covering(p):          # how many triangles' projections hold the point (the page takes the smallest)
+        a, b, c = uv[F[:, 0]], uv[F[:, 1]], uv[F[:, 2]]
+        s1 = np.cross(b - a, p - a)
+        s2 = np.cross(c - b, p - b)
+        s3 = np.cross(a - c, p - c)
+        return int((((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))).sum())
+    big = [k for k in np.argsort(area)[::-1] if 25 < cen[k][0] < 100 and 25 < cen[k][1] < 100
+           and covering(cen[k]) == 1][:2]
+    ka, kb = int(big[0]), int(big[1])
+    tri_a, tri_b = F[ka].tolist(), F[kb].tolist()
+    _select(d, "tpl-op", "flip_triangle")
+    _click(d, "cam1", *cen[kb])
+    doc = saved()
+    assert [tri_b[0], tri_b[2], tri_b[1]] in doc["triangles"] and tri_b not in doc["triangles"]
+    _select(d, "tpl-op", "delete_triangle")
+    _click(d, "cam1", *cen[ka])
+    doc = saved()
+    assert len(doc["triangles"]) == f0 - 1 and tri_a not in doc["triangles"]
+    # add a vertex (a nostril) from clicks in two views
+    a, b = doc["vertices"][tri_a[0]]["position"], doc["vertices"][tri_a[1]]["position"]
+    Xn = 0.5 * (np.asarray(a) + np.asarray(b))
+    _select(d, "tpl-op", "add_vertex")
+    _select(d, "tpl-kind", "nostril")
+    _click(d, "cam0", *cams["cam0"].project(Xn[None])[0][0])
+    _click(d, "cam1", *cams["cam1"].project(Xn[None])[0][0])
+    _wait(d, f"return studio.tpl.doc.vertices.length === {n0 + 1}", what="the new vertex")
+    doc = saved()
+    assert doc["vertices"][-1]["kind"] == "nostril"
+    fp = cams["cam0"].pixel_footprint(1.3)
+    assert np.linalg.norm(np.asarray(doc["vertices"][-1]["position"]) - Xn) < 4 * q * fp
+    # a region: the moved vertex goes into the chin
+    _select(d, "tpl-op", "region")
+    _select(d, "tpl-region", "chin")
+    uv = np.asarray(d.execute_script("return studio.tpl.uv.cam1"))
+    _click(d, "cam1", *uv[vid])
+    doc = saved()
+    assert vid in doc["regions"]["chin"] and not any(vid in v for k, v in doc["regions"].items() if k != "chin")
+    # delete a vertex below a coarse point of the smile: that coarse point's id follows
+    coarse_doc = json.loads((served.capture / "hand" / "coarse_points.json").read_text())
+    smile = coarse_doc["expressions"]["smile"]
+    top = max(int(k) for k in smile)
+    victim = min(i for i in inside if i < top and str(i) not in smile and i != vid)
+    _select(d, "tpl-op", "delete_vertex")
+    _click(d, "cam1", *uv[victim])
+    doc = saved()
+    assert len(doc["vertices"]) == n0
+    after = json.loads((served.capture / "hand" / "coarse_points.json").read_text())["expressions"]["smile"]
+    assert after[str(top - 1)] == smile[str(top)] and str(top) not in after
+    # undo: the vertex is back, and so are the smile's ids
+    d.find_element("id", "undo").click()
+    doc = saved()
+    assert len(doc["vertices"]) == n0 + 1 and doc["vertices"][victim] == doc0["vertices"][victim]
+    back = json.loads((served.capture / "hand" / "coarse_points.json").read_text())["expressions"]["smile"]
+    assert back == smile
+    _shot(d, "template")
+    # leaving the template tool reloads the session with the edited template
+    _tool(d, "navigate")
+    _wait(d, f"return studio.info.template.n_vertices === {n0 + 1}", what="the session to reload")
+
+
+@pytest.fixture
+def bare(studio_capture, tmp_path):
+    """A copy of the tiny capture with no hand inputs at all (no hand/ folder, nothing registered)."""
+    src, _ = studio_capture
+    cap = tmp_path / "capture"
+    shutil.copytree(src, cap)
+    shutil.rmtree(cap / "hand")
+    shutil.rmtree(cap / "registration", ignore_errors=True)
+    s = Served(cap)
+    yield s
+    s.stop()
+
+
+def test_from_a_capture_folder_to_a_model_without_writing_json(browser, bare, studio_capture):
+    """The issue's 'done when': from a capture folder with no hand inputs, in the browser only — propose
+    and accept the template, then for each expression propose, accept and register — and `mifacerf build`
+    makes a model of it that verifies. Nothing of the truth is read by the server."""
+    import subprocess
+    import sys
+
+    from openwatch import watch_opens
+
+    _, truth = studio_capture
+    d = browser
+    with watch_opens(truth) as opened:
+        d.get(bare.url)
+        _wait(d, "return window.studio && studio.info && studio.state && !studio.loading", what="the page")
+        assert d.execute_script("return studio.info.template") is None
+        d.find_element("id", "propose-template").click()
+        _wait(d, "return studio.templateProposal && studio.templateProposal.template", timeout=120,
+              what="the template proposal")
+        _shot(d, "template-proposal")
+        d.find_element("id", "accept-template").click()
+        _wait(d, "return studio.info.template && studio.info.template.n_vertices > 60", timeout=120,
+              what="the accepted template")
+        for name in ("neutral", "smile"):
+            d.find_element("css selector", f"#expressions li[data-name={name}]").click()
+            _wait(d, f"return studio.expr === '{name}' && !studio.loading", what=name)
+            d.find_element("id", "propose").click()
+            _wait(d, "return studio.proposal && studio.proposal.state", timeout=120, what="the proposal")
+            d.find_element("id", "accept-proposal").click()
+            _idle(d)
+            d.find_element("id", "register").click()
+            _wait(d, f"return studio.job && studio.job.expression === '{name}' && "
+                     "['done', 'failed'].includes(studio.job.state) && "
+                     "!document.getElementById('register').disabled", timeout=400, what=f"registering {name}")
+            assert d.execute_script("return studio.job.state") == "done", d.execute_script("return studio.job")
+        _wait(d, "return document.querySelector('#expressions li[data-name=smile]').textContent.includes('%')",
+              what="the list to show the registration")
+        _shot(d, "chain-registered")
+    assert opened == [], "the studio opened ground-truth files"
+    hand = bare.capture / "hand"
+    assert sorted(p.name for p in hand.iterdir()) == ["coarse_points.json", "rotoscope", "template.json"]
+    assert "mifacerf studio" in json.loads((hand / "template.json").read_text())["made_by"]
+    rep = json.loads((bare.capture / "registration" / "registration.json").read_text())["expressions"]
+    assert set(rep) == {"neutral", "smile"} and min(r["registered_fraction"] for r in rep.values()) > 0.4
+    model = bare.capture.parent / "model"
+    exe = [str(Path(sys.executable).parent / "mifacerf")]
+    r = subprocess.run(exe + ["build", str(bare.capture), "-o", str(model)], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = subprocess.run(exe + ["verify", str(model)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]

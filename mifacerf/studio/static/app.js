@@ -121,7 +121,8 @@ function buildControls() {
   on("gamma", "change", (e) => { S.gamma = parseFloat(e.target.value); document.getElementById("gamma-val").textContent = S.gamma; loadImages(); });
   on("reset-view", "click", () => { S.view = { zoom: 1, ox: 0, oy: 0 }; drawAll(); });
   for (const id of ["ov-fiducials", "ov-wireframe", "ov-coarse", "ov-curves", "ov-marks", "ov-proposals"]) on(id, "change", drawAll);
-  for (const r of document.querySelectorAll("input[name=tool]")) r.addEventListener("change", (e) => { S.tool = e.target.value; drawAll(); });
+  for (const r of document.querySelectorAll("input[name=tool]")) r.addEventListener("change", (e) => { S.tool = e.target.value; toolChanged(); });
+  buildTemplateControls();
   on("coarse-select", "change", drawAll);
   on("curve-select", "change", drawAll);
   on("point-select", "change", drawAll);
@@ -130,8 +131,8 @@ function buildControls() {
     if (!S.state.rotoscope.curves[name]) return;
     edit(() => { delete S.state.rotoscope.curves[name]; });
   });
-  on("undo", "click", undo);
-  on("redo", "click", redo);
+  on("undo", "click", () => (S.tool === "template" ? tplUndo() : undo()));
+  on("redo", "click", () => (S.tool === "template" ? tplRedo() : redo()));
   on("propose", "click", propose);
   on("accept-proposal", "click", acceptProposal);
   on("discard-proposal", "click", () => { S.proposal = null; proposalButtons(); drawAll(); });
@@ -140,9 +141,19 @@ function buildControls() {
   on("register", "click", registerExpression);
   document.addEventListener("keydown", (e) => {
     if (e.target.tagName === "INPUT" && e.target.type !== "radio" && e.target.type !== "checkbox") return;
-    if ((e.ctrlKey || e.metaKey) && e.key.toLowerCase() === "z") { e.preventDefault(); e.shiftKey ? redo() : undo(); }
-    else if ((e.ctrlKey || e.metaKey) && e.key.toLowerCase() === "y") { e.preventDefault(); redo(); }
+    const t = S.tool === "template";
+    if ((e.ctrlKey || e.metaKey) && e.key.toLowerCase() === "z") { e.preventDefault(); e.shiftKey ? (t ? tplRedo() : redo()) : (t ? tplUndo() : undo()); }
+    else if ((e.ctrlKey || e.metaKey) && e.key.toLowerCase() === "y") { e.preventDefault(); t ? tplRedo() : redo(); }
   });
+}
+
+async function toolChanged() {
+  const t = S.tool === "template";
+  document.getElementById("template-bar").classList.toggle("hidden", !t);
+  if (t && !S.tpl) await loadTemplate();
+  if (!t && S.tplDirty) await tplSaveNow();
+  if (!t && S.tplEdited) { S.tplEdited = false; await refreshSession(); await loadExpression(); }
+  drawAll();
 }
 
 function fillCoarseSelect() {
@@ -186,6 +197,8 @@ async function selectExpression(name) {
   const neutralNoTemplate = name === S.info.neutral;
   document.getElementById("propose-template").classList.toggle("hidden", !neutralNoTemplate);
   document.getElementById("accept-template").classList.toggle("hidden", !neutralNoTemplate);
+  document.getElementById("tool-template-label").classList.toggle("hidden", !neutralNoTemplate);
+  if (!neutralNoTemplate && S.tool === "template") { document.querySelector("input[name=tool][value=navigate]").click(); }
 }
 
 async function loadExpression() {
@@ -428,6 +441,7 @@ function attachView(canvas, cam) {
     if (e.button === 2 || e.button === 1 || S.tool === "navigate") { S.drag = { kind: "pan", x, y, moved: false }; return; }
     if (e.button !== 0) return;
     const alt = e.altKey;
+    if (S.tool === "template") { templateDown(canvas, cam, x, y, u, v, alt).then((d) => { S.drag = d; S.tplEdited = true; }); return; }
     if (S.tool === "curve") { S.drag = curveDown(canvas, cam, x, y, alt); return; }
     if (!inside(cam, u, v)) { say("click outside the image: ignored", "warn"); return; }
     if (S.tool === "coarse") coarseClick(cam, u, v, alt);
@@ -446,12 +460,14 @@ function attachView(canvas, cam) {
     if (d.kind === "pan") { S.view.ox += x - d.x; S.view.oy += y - d.y; d.x = x; d.y = y; drawAll(); }
     else if (d.kind === "curve" && d.cam === cam.name) { S.state.rotoscope.curves[d.name][d.cam][d.i] = [round3(u), round3(v)]; drawAll(); }
     else if (d.kind === "fix" && d.cam === cam.name) { d.u = u; d.v = v; d.moved = true; drawAll(); }
+    else if (d.kind === "tvertex" && d.cam === cam.name) { d.u = u; d.v = v; d.moved = true; drawAll(); }
   });
   canvas.addEventListener("pointerup", (e) => {
     const d = S.drag;
     S.drag = null;
     if (!d) return;
     if (d.kind === "curve") afterEdit();
+    else if (d.kind === "tvertex") templateUp(d, cam);
     else if (d.kind === "fix" && d.moved && inside(cam, d.u, d.v)) finishFix(d.vid, d.cam, d.u, d.v);
   });
 }
@@ -499,6 +515,7 @@ function drawView(camName) {
     ctx.fillStyle = "#f88"; ctx.fillText("image unavailable", 10, 20);
   }
   const P = (u, v) => toScreen(canvas, cam, u, v);
+  if (S.tool === "template") { drawTemplate(ctx, canvas, cam); return; }
   const t = S.info.template;
   const g = S.data && S.data.geometry;
   const r = Math.max(2, Math.min(6, 0.6 * s));
@@ -661,7 +678,7 @@ async function proposeTemplate(accept) {
     const r = await api("/api/proposals/template", { method: "POST", body: { accept } });
     S.templateProposal = r;
     say(r.note || "template proposal ready");
-    if (accept && r.accepted) { S.templateProposal = null; await refreshSession(); await loadExpression(); }
+    if (accept && r.accepted) { S.templateProposal = null; S.tpl = null; await refreshSession(); await loadExpression(); }
   } catch (e) { say(`template proposal failed: ${e.message}`, "warn"); }
   proposalButtons(); drawAll();
 }
