@@ -78,7 +78,8 @@ def draw_cases(tr, model, rng, n: int = 2) -> list[Case]:
     for _ in range(n):
         p = random_params(tr.subject, rng)
         c = cams[int(rng.integers(len(cams)))]
-        mesh = tr.subject.pose(p, textures=False).template_vertices
+        # a model built without the template's extensions is given the face part (its vertices come first)
+        mesh = tr.subject.pose(p, textures=False).template_vertices[:model.n_vertices]
         cases.append(Case("d", f"d:random#{len(cases)}@{c.name}", c, p, mesh=mesh))
     return cases
 
