@@ -16,7 +16,10 @@ consistent (tested with Mitsuba's chi-square harness).
 Standard integrators trace shadow rays, and the face mesh shadows itself although the reflectance
 fields already hold its self-shadowing; ``self_visibility`` (default on) divides the captured
 self-visibility out where it is known (measured in docs/rendering.md). Eyes, teeth and mouth
-interior are not shaded by this material (zero); the ``facerf`` integrator shades them.
+interior (the labelled part triangles of a ``facerf_face`` shape) answer each light direction from their
+reference expression's part fields (:class:`mifacerf.rendering.parts.PartMaterial`), their visibility
+(lids, lips, other objects) from the integrator's shadow rays; the integrator's re-synthesised glossy
+cornea highlight is not part of this response.
 
 .. list-table::
    * - model
@@ -29,6 +32,11 @@ interior are not shaded by this material (zero); the ``facerf`` integrator shade
      - string — light-stage rule, a ``LIGHT_BASIS_METHODS`` name (default ``voronoi``, or ``hat``)
    * - self_visibility
      - boolean — divide the captured self-visibility out (:mod:`mifacerf.rendering.self_visibility`; default true)
+   * - parts
+     - boolean — shade eyes, teeth and mouth interior (default true; false: they are black)
+   * - depth_tolerance, max_slots
+     - float, integer — the texel depth test (metres, default 0.004, as ``Renderer(depth_tolerance=)``) and
+       the source expressions kept per vertex (default 4, the largest weights)
    * - method, rank
      - string, integer — stored fields, a ``COMPRESSION_METHODS`` name (default ``exact``; ``pca`` with
        ``rank``: the ``pca<rank>`` files of ``mifacerf compress``, reconstructed at upload)
@@ -68,6 +76,11 @@ class FaceRFBSDF(mi.BSDF):
 
             compression_method(self.fields.get("method", "exact"))
         self.n_skin_triangles = None
+        self.parts = None
+        self.with_parts = bool(props["parts"]) if "parts" in props else True
+        for key, cast in (("max_slots", int), ("depth_tolerance", float)):   # the Python API's skips, by name
+            if key in props:
+                self.fields[key] = cast(props[key])
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
 
@@ -89,6 +102,9 @@ class FaceRFBSDF(mi.BSDF):
         """Follow a ``facerf_face`` shape: its model and pose (called by the shape when it is built)."""
         from mifacerf.rendering.material import MaterialState
 
+        from mifacerf.jitarrays import to_jit
+        from mifacerf.rendering.parts import PartMaterial
+
         self.shape = shape
         pose = shape.pose_state
         self.n_skin_triangles = shape.geometry.n_skin_triangles
@@ -97,7 +113,17 @@ class FaceRFBSDF(mi.BSDF):
                                        self_visibility=self.self_visibility, **self.fields)
         else:
             self.state.update(pose.target, pose.weights)
-        shape.listeners.append(lambda s: self.state.update(s.pose_state.target, s.pose_state.weights))
+        if self.with_parts and shape.geometry.part_names:   # eyes, teeth, mouth interior: their own response
+            self.parts = PartMaterial(shape.face.model, self.state.lights, self.state.depth_tolerance)
+            self.parts.update(pose.parts, pose.weights)
+            self.label = to_jit(mi.UInt32, shape.label)
+
+        def follow(s):
+            self.state.update(s.pose_state.target, s.pose_state.weights)
+            if self.parts is not None:
+                self.parts.update(s.pose_state.parts, s.pose_state.weights)
+
+        shape.listeners.append(follow)
 
     # --------------------------------------------------------------- sampling
     @staticmethod
@@ -132,9 +158,15 @@ class FaceRFBSDF(mi.BSDF):
         view = si.to_world(si.wi)
         light = si.to_world(wo)
         ok = mi.Bool(active) & (dr.squared_norm(view) > 0.5) & (dr.squared_norm(light) > 0.5)
+        on_part = mi.Bool(False)
         if self.n_skin_triangles is not None:   # on a facerf_face shape: its skin triangles come first
+            on_part = ok & (si.prim_index >= self.n_skin_triangles)
             ok &= si.prim_index < self.n_skin_triangles
         value = self.state.evaluate(si.prim_index, si.p, view, light, ok)
+        if self.parts is not None:   # eyes, teeth and mouth interior (labelled triangles after the skin's)
+            part = dr.gather(mi.UInt32, self.label, si.prim_index, on_part) - 1
+            value = dr.select(on_part, self.parts.evaluate(part, si.p, view, light, on_part), value)
+            ok |= on_part
         return dr.select(ok & dr.isfinite(value.x + value.y + value.z), value, 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):

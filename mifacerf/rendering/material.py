@@ -51,7 +51,7 @@ class MaterialState:
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
-                 rank: int | None = None):
+                 rank: int | None = None, depth_tolerance: float = None):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -64,7 +64,9 @@ class MaterialState:
         self.sources = to_jit(mi.Float, np.asarray(model.vertices, np.float64).reshape(-1))
         self.visible = to_jit(mi.Float, np.asarray(model.visible, np.float32).reshape(-1))   # (S, C, T)
         self.visible_near = to_jit(mi.Float, np.asarray(model.visible_near, np.float32).reshape(-1))
-        self.depth_tolerance = DEPTH_TOLERANCE
+        self.depth_tolerance = DEPTH_TOLERANCE if depth_tolerance is None else float(depth_tolerance)
+        if not self.depth_tolerance > 0 or max_slots < 1:
+            raise ValueError(f"depth_tolerance must be > 0 and max_slots >= 1 (got {depth_tolerance}, {max_slots})")
         self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
         self.n_lights = model.n_lights
         self.views = ViewSampler.from_cameras(model.cameras)
@@ -165,6 +167,7 @@ class MaterialState:
         mi = self.mi
         Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
         active = mi.Bool(active)
+        tri = dr.select(active, mi.UInt32(tri), 0)   # a part's triangle (index past the skin's) is never read
         b = barycentric(self.triangles, self.target, tri, p)
         vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
         n = dr.width(tri) if dr.width(tri) > 1 else dr.width(p.x)

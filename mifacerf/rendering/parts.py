@@ -353,6 +353,173 @@ class PartFrame:
         return colour, active & (wsum > 0)
 
 
+class PartMaterial:
+    """Eyes, teeth and mouth interior for the image-based material (``facerf_bsdf``): the response of each
+    part to *one* light direction, as :class:`PartFrame` sums it over the light stage.
+
+    Per hit on part ``k`` at world point ``p``, viewer direction ``ω_o`` and light direction ``ω_i``::
+
+        f = Σ_c w_c(R_Δ ω_o) · F_ref,c(x_c(A p))[interp(R_Δ ω_i)]
+
+    with ``A = T_ref · T_target⁻¹`` (3x4: the target's part point in the reference expression's geometry),
+    ``R_Δ`` its rotation, ``w_c`` the camera weights of the rotated view (:class:`.views.ViewSampler`,
+    cameras without the part's data dropped, renormalised), ``x_c`` the projection into camera ``c``
+    (the 2x2 texels whose stored depth lies within ``depth_tolerance`` of the point, as in
+    :class:`PartFrame`) and ``interp`` the material's light rule. The visibility ``V_l`` of §6.3 — lids
+    over the eyes, lips over the teeth, other objects — is the integrator's shadow ray. The reference of
+    each part is chosen per pose as the exact path's (:func:`frame_reference`). The re-synthesised glossy
+    cornea highlight of :class:`PartFrame` is not part of this diffuse response (the stored eye fields
+    have their sharp highlights removed, so eyes under the material lack it).
+
+    ``model``: :class:`~.model.Model`; ``lights``: a :class:`.light_interp.LightInterpolator` (on the device).
+    """
+
+    def __init__(self, model, lights, depth_tolerance: float = 0.004):
+        from .views import ViewSampler
+
+        mi = ensure_variant()
+        self.mi = mi
+        self.model = model
+        self.lights = lights
+        self.L = model.n_lights
+        self.C = len(model.cameras)
+        self.views = ViewSampler.from_cameras(model.cameras)
+        self.cam_table = to_jit(mi.Float, np.concatenate([camera_params(c) for c in model.cameras]))
+        self.depth_tolerance = depth_tolerance
+        self.margins = margin_ids(model.template)
+        self.chosen: dict = {}
+        self.uploaded_key = None
+        self.table = to_jit(mi.Float, np.zeros(len(PARTS) * 12))
+        self._empty()
+
+    def _empty(self) -> None:
+        mi = self.mi
+        F16 = __import__("drjit").float16_array_t(mi.Float)
+        self.has = to_jit(mi.Float, np.zeros(len(PARTS) * self.C))
+        self.offs = to_jit(mi.UInt32, np.zeros(len(PARTS) * self.C, np.uint32))
+        self.index = to_jit(mi.Int32, np.full(2, -1, np.int32))
+        self.depth = to_jit(mi.Float, np.zeros(2))
+        self.rf = to_jit(F16, np.zeros(6))
+
+    def update(self, parts: dict, weights: np.ndarray | None) -> None:
+        """A pose: ``parts`` {part: 4x4 rest → world}, ``weights`` (T, S) per-vertex expression weights
+        (choose each part's reference, :func:`frame_reference`)."""
+        model = self.model
+        by_group = None
+        if weights is not None:
+            by_group = {g: dict(zip(model.expressions, np.asarray(weights)[ids].mean(axis=0)))
+                        for g, ids in self.margins.items()}
+        tab = np.zeros((len(PARTS), 12))
+        chosen = {}
+        for p, T_t in parts.items():
+            ref = frame_reference(p, model.references, model.part_sources, by_group)
+            if ref is None:
+                continue
+            s = model.expression_index(ref)
+            T_ref = part_transforms(model.template, model.eye_centres[s], model.teeth[s], model.head_pose[s]).get(p)
+            if T_ref is None:
+                continue
+            A = T_ref @ np.linalg.inv(np.asarray(T_t, np.float64))
+            tab[PARTS.index(p)] = A[:3, :4].reshape(-1)
+            chosen[p] = ref
+        mi = self.mi
+        self.table = to_jit(mi.Float, tab.reshape(-1))
+        key = tuple(sorted(chosen.items()))
+        if key != self.uploaded_key:
+            self._upload(chosen)
+            self.uploaded_key = key
+        self.chosen = chosen
+
+    def _upload(self, chosen: dict) -> None:
+        """The part texels of each part's reference, every camera, on the device."""
+        model, C, mi = self.model, self.C, self.mi
+        has = np.zeros((len(PARTS), C))
+        offs = np.zeros((len(PARTS), C), np.uint32)
+        index_parts, depth_parts, rf_parts = [], [], []
+        img_off, row_off = 0, 0
+        for p, ref in chosen.items():
+            k = PARTS.index(p)
+            for c, cam in enumerate(model.cameras):
+                pf = model.part_field(ref, c)
+                sel = np.flatnonzero(pf["part"] == k) if pf is not None else np.zeros(0, np.int64)
+                if not len(sel):
+                    continue
+                idx = np.full(cam.height * cam.width, -1, np.int64)
+                px = pf["pixels"][sel]
+                idx[px[:, 0] * cam.width + px[:, 1]] = np.arange(len(sel)) + row_off
+                index_parts.append(idx)
+                depth_parts.append(np.asarray(pf["depth"][sel], np.float32))
+                rf_parts.append(np.asarray(pf["rf"][sel], np.float16))
+                has[k, c] = 1.0
+                offs[k, c] = img_off
+                img_off += idx.size
+                row_off += len(sel)
+        if not index_parts:
+            self._empty()
+            return
+        F16 = __import__("drjit").float16_array_t(mi.Float)
+        self.has = to_jit(mi.Float, has.reshape(-1))
+        self.offs = to_jit(mi.UInt32, offs.reshape(-1))
+        self.index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32))
+        self.depth = to_jit(mi.Float, np.concatenate(depth_parts))
+        self.rf = to_jit(F16, np.concatenate(rf_parts).reshape(-1))
+
+    def evaluate(self, part, p, view, light, active=True):
+        """Radiance per unit irradiance (Color3f) of hits on parts: ``part`` (UInt32, :data:`PARTS` index),
+        world point ``p``, unit world directions ``view`` and ``light``; 0 where no camera holds the point."""
+        import drjit as dr
+
+        mi = self.mi
+        Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
+        active = mi.Bool(active)
+        A = [dr.gather(Float, self.table, part * 12 + e, active) for e in range(12)]
+        pr = [A[4 * r] * p.x + A[4 * r + 1] * p.y + A[4 * r + 2] * p.z + A[4 * r + 3] for r in range(3)]
+
+        def rotate(x):
+            return mi.Vector3f(*[A[4 * r] * x.x + A[4 * r + 1] * x.y + A[4 * r + 2] * x.z for r in range(3)])
+
+        cam_ids, cam_w = self.views.weights_jit(rotate(view))
+        light_ids, light_w = self.lights.weights_jit(rotate(light), active)
+        cw = [dr.select(active, cam_w[m], 0.0) * dr.gather(Float, self.has, part * self.C + cam_ids[m], active)
+              for m in range(3)]
+        ctot = cw[0] + cw[1] + cw[2]
+        cinv = dr.select(ctot > 0, dr.rcp(ctot), 0.0)
+        tol = dr.opaque(Float, self.depth_tolerance)
+        L3 = self.L * 3
+        out = [Float(0), Float(0), Float(0)]
+        wsum = Float(0)
+        for m in range(3):
+            wc = cw[m] * cinv
+            use = active & (wc > 0)
+            c = cam_ids[m]
+
+            def P(e):
+                return dr.gather(Float, self.cam_table, c * CAM_PARAMS + e, use)
+
+            u, v, dist, zc, wi, hi = project(P, pr)
+            off = dr.gather(UInt32, self.offs, part * self.C + c, use)
+            col = [Float(0), Float(0), Float(0)]
+            cov = Float(0)
+            for pix, wgt, inside in bilinear_taps(u, v, wi, hi, use & (zc > 0)):
+                row = dr.gather(Int32, self.index, off + pix, inside)
+                ok = inside & (row >= 0)
+                rsel = UInt32(dr.select(ok, row, 0))
+                ok &= dr.abs(dr.gather(Float, self.depth, rsel, ok) - dist) <= tol
+                tw = dr.select(ok, wgt, 0.0)
+                for ch in range(3):
+                    for li in range(3):
+                        col[ch] += tw * light_w[li] * Float(dr.gather(type(self.rf), self.rf,
+                                                                      rsel * L3 + light_ids[li] * 3 + ch, ok))
+                cov += tw
+            good = use & (cov > 1e-3)
+            scale = dr.select(good, wc / cov, 0.0)
+            for ch in range(3):
+                out[ch] += scale * col[ch]
+            wsum += dr.select(good, wc, 0.0)
+        inv = dr.select(wsum > 1e-9, dr.rcp(wsum), 0.0)
+        return mi.Color3f(out[0] * inv, out[1] * inv, out[2] * inv)
+
+
 # ----------------------------------------------------------------- model build
 def visible_part_pixels(reg, name: str, template: dict, triangles, meshes: dict, cameras, scene=None,
                         size: int = 64) -> dict:
