@@ -108,12 +108,15 @@ class MeshScene:
         mi = self._mi
         ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
         pi = self.scene.ray_intersect_preliminary(ray)
-        valid = np.asarray(pi.is_valid()).astype(bool)
+        # one kernel for every output: read back one by one (is_valid included), each re-ran the ray cast
+        self._dr.eval(pi.t, pi.prim_uv, pi.prim_index)
+        t_hit = np.asarray(pi.t)
+        valid = t_hit < np.inf           # PreliminaryIntersection.is_valid(): t is inf where nothing was hit
         uv = np.nan_to_num(from_jit(pi.prim_uv))
         tri = np.where(valid, np.asarray(pi.prim_index).astype(np.int64), -1)
         bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
         bary[~valid] = 0.0
-        t = np.where(valid, np.asarray(pi.t), np.inf).astype(np.float64)
+        t = np.where(valid, t_hit, np.inf).astype(np.float64)
         return Hits(valid, tri, bary, t)
 
     def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:
