@@ -42,18 +42,20 @@ def folder(tmp_path):
 
 
 def test_mesh_subject_interface(folder, mi):
-    s = load_mesh_subject(folder, texture_resolution=256)
+    s = load_mesh_subject(folder, texture_resolution=512)
     assert [c.name for c in s.controls] == ["jawOpen", "mouthSmile"]
     assert all(c.lo == 0 and c.hi == 1 and c.default == 0 for c in s.controls)
     p = s.params(jawOpen=1.0)
     pose = s.pose(p)
     V0 = trimesh.load(folder / "neutral.obj", process=False, maintain_order=True).vertices
     V1 = trimesh.load(folder / "jawOpen.obj", process=False, maintain_order=True).vertices
-    np.testing.assert_allclose(pose.skin_vertices, V1, atol=1e-6)
+    o = s.offset                                      # placement "auto": nose tip on the embedded head's
+    np.testing.assert_allclose(o + V0[np.argmax(V0[:, 2])], [0.0, -0.0267, 0.1127], atol=1e-9)
+    np.testing.assert_allclose(pose.skin_vertices, V1 + o, atol=1e-6)
     half = s.pose(s.params(jawOpen=0.5, mouthSmile=0.5)).skin_vertices
     V2 = trimesh.load(folder / "mouthSmile.obj", process=False, maintain_order=True).vertices
-    np.testing.assert_allclose(half, V0 + 0.5 * (V1 - V0) + 0.5 * (V2 - V0), atol=1e-6)
-    np.testing.assert_allclose(s.neutral.skin_vertices, V0, atol=1e-6)
+    np.testing.assert_allclose(half, V0 + o + 0.5 * (V1 - V0) + 0.5 * (V2 - V0), atol=1e-6)
+    np.testing.assert_allclose(s.neutral.skin_vertices, V0 + o, atol=1e-6)
     # dots: evenly sampled, painted, exact in every pose
     assert len(s.dot_tri) == 300
     d = np.linalg.norm(s.dots_neutral[:, None] - s.dots_neutral[None], axis=-1)
@@ -61,15 +63,17 @@ def test_mesh_subject_interface(folder, mi):
     assert d.min() > 0.002
     want = np.einsum("nk,nkj->nj", s.dot_bary, pose.skin_vertices[s.skin_faces[s.dot_tri]])
     np.testing.assert_allclose(pose.dots, want)
-    assert pose.textures.albedo.shape == (256, 256, 3)
+    assert pose.textures.albedo.shape == (512, 512, 3)
     assert (np.abs(pose.textures.albedo - [0.9, 0.85, 0.1]).max(-1) < 0.05).sum() > 50   # yellow dots
-    # template: the dots, a mesh without the mouth slot, coarse points, regions; no teeth or eyes
+    # template: the dots, lip margins round the slot, a mesh without the slot, coarse points, regions
     t = s.template
-    assert t.n_vertices == 300 and len(t.coarse_points) == 18 and t.teeth == {} and t.eyes == {}
+    assert t.kinds.count("dot") == 300 and len(t.coarse_points) == 18 and t.teeth == {} and t.eyes == {}
+    assert "mouth" in t.holes and t.kinds.count("lip_corner") == 2
     assert len(t.triangles) > 400
-    cen = t.neutral[t.triangles].mean(1)
+    cen = t.neutral[t.triangles].mean(1) - o
     assert not np.any((np.abs(cen[:, 0]) < 0.006) & (np.abs(cen[:, 1] + 0.05) < 0.0015) & (cen[:, 2] > 0.07))
-    assert sum(len(v) for v in t.regions.values()) == 300
+    assert sum(len(v) for v in t.regions.values()) == t.n_vertices
+    assert s.template_info["coverage"] >= 0.98
     u = type(t).from_json(t.to_json())
     np.testing.assert_array_equal(u.triangles, t.triangles)
     # presets of the usual sizes
@@ -80,7 +84,7 @@ def test_mesh_subject_interface(folder, mi):
     # renders in a SubjectScene
     sc = SubjectScene(s)
     sc.set_pose(pose)
-    ray = mi.Ray3f(mi.Point3f(0.0, 0.0, 0.5), mi.Vector3f(0.0, 0.0, -1.0))
+    ray = mi.Ray3f(mi.Point3f(*[float(c) for c in o + [0.0, 0.0, 0.5]]), mi.Vector3f(0.0, 0.0, -1.0))
     pid, face = sc.classify(sc.scene.ray_intersect(ray))
     assert int(pid[0]) == 1 and bool(face[0])
 
@@ -91,16 +95,17 @@ def test_explicit_files_manifest_and_albedo(folder, tmp_path):
     img = np.zeros((64, 64, 3), np.uint8)
     img[..., 0] = 200
     iio.imwrite(folder / "albedo.png", img)
-    s = load_mesh_subject(folder / "neutral.obj", {"open": folder / "jawOpen.obj"}, albedo=folder / "albedo.png",
-                          texture_resolution=128, n_dots=50)
+    # these meshes have no texture coordinates: the albedo cannot be mapped, and saying so is the answer
+    with pytest.raises(MeshSubjectError, match="no texture coordinates"):
+        load_mesh_subject(folder / "neutral.obj", {"open": folder / "jawOpen.obj"}, albedo=folder / "albedo.png",
+                          texture_resolution=512, n_dots=50)
+    (folder / "albedo.png").unlink()
+    s = load_mesh_subject(folder / "neutral.obj", {"open": folder / "jawOpen.obj"}, texture_resolution=512, n_dots=50)
     assert [c.name for c in s.controls] == ["open"]
-    a = s.neutral.textures.albedo
-    red = (a[..., 0] > 0.5) & (a[..., 1] < 0.05)
-    assert red.mean() > 0.5                              # the user's (sRGB-decoded) albedo
     (folder / "subject.json").write_text(json.dumps({
         "neutral": "neutral.obj", "expressions": {"jaw": "jawOpen.obj"},
         "presets": [{"name": "half_open", "category": "viseme", "weights": {"jaw": 0.5}}]}))
-    s = load_mesh_subject(folder, texture_resolution=128, n_dots=40)
+    s = load_mesh_subject(folder, texture_resolution=512, n_dots=40)
     names = [e.name for e in s.presets(6)]
     assert names[:2] == ["neutral", "half_open"]
 
@@ -129,7 +134,7 @@ def test_bad_inputs_have_clear_errors(folder, tmp_path_factory):
         load_mesh_subject(folder / "neutral.obj", {"j": folder / "jawOpen.obj"}, scale=100.0)
     with pytest.raises(MeshSubjectError, match="at least one"):
         load_mesh_subject(folder / "neutral.obj", {})
-    s = load_mesh_subject(folder, texture_resolution=64, n_dots=20)
+    s = load_mesh_subject(folder, texture_resolution=512, n_dots=20)
     with pytest.raises(KeyError):
         s.params(nope=1)
     with pytest.raises(ValueError):
