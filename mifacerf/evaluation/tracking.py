@@ -41,14 +41,14 @@ def truth_visibility(truth, params: np.ndarray, points: np.ndarray, cameras, min
     from scipy.spatial import cKDTree
 
     from ..geometry.meshscene import MeshScene
-    from ..synthetic.synth import load_subject
+    from ..synthetic.synth import load_subject, subject_from_truth
 
-    folder = None
+    subject = None
     for cand in (Path(truth) / "truth" / "truth.json", Path(truth).parent / "truth.json"):
         if cand.exists():
-            folder = json.loads(cand.read_text()).get("subject", {}).get("folder")
+            subject = subject_from_truth(cand.parent.parent)
             break
-    subject = load_subject(folder)
+    subject = subject if subject is not None else load_subject(None)
     scene = None
     out = np.zeros((len(params), len(cameras), points.shape[1]), bool)
     for f, p in enumerate(params):

@@ -14,6 +14,13 @@ from ..execution import executor_options
               help="Rig size: tiny (tests, seconds), draft (demo, minutes), paper (480 lights, 60 expressions).")
 @click.option("--subject", "subject_folder", type=click.Path(exists=True, file_okay=False), default=None,
               help="A folder with your own subject (neutral + expression meshes); default: the embedded head.")
+@click.option("--scale", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="With --subject: file units to metres (0.01 for centimetres); overrides subject.json.")
+@click.option("--dots", "n_dots", type=click.IntRange(min=1), default=None,
+              help="With --subject: the number of fiducial dots on the visible skin (default 300).")
+@click.option("--shapes", default=None, metavar="NAMES|GLOBS",
+              help="With --subject: comma-separated expression meshes (names or globs, e.g. 'jaw*,mouthSmile_?') "
+                   "that become controls; the preset's expressions are made from them.")
 @click.option("--expressions", default=None, help="Comma-separated expression names (default: the preset's).")
 @click.option("--overwrite", is_flag=True, help="Replace a complete capture already in OUT.")
 @click.option("--contact-sheet/--no-contact-sheet", default=True, show_default=True,
@@ -23,8 +30,8 @@ from ..execution import executor_options
                    "is reused); see docs/tracking.md.")
 @click.option("--performance-size", type=click.IntRange(min=1), default=192, show_default=True, help="Video resolution (square).")
 @executor_options
-def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet, performance, performance_size,
-              workers, cluster):
+def synth_cmd(out, preset, subject_folder, scale, n_dots, shapes, expressions, overwrite, contact_sheet, performance,
+              performance_size, workers, cluster):
     """Render the light-stage capture of a synthetic subject into OUT/capture (truth: OUT/truth).
 
     The (expression, camera) takes are rendered by a local cluster (one worker process per core), the
@@ -33,6 +40,10 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
     from ..formats.capture import CaptureError
     from .synth import synthesize
 
+    given = [n for n, v in (("--scale", scale), ("--dots", n_dots), ("--shapes", shapes)) if v is not None]
+    if given and subject_folder is None:
+        raise click.UsageError(f"{', '.join(given)} only apply to a user's head (--subject FOLDER)")
+    options = {"scale": scale, "n_dots": n_dots, "shapes": shapes.split(",") if shapes else None}
     reuse = performance is not None and not overwrite and (Path(out) / "capture" / "manifest.json").exists()
     try:
         if not reuse:
@@ -40,7 +51,7 @@ def synth_cmd(out, preset, subject_folder, expressions, overwrite, contact_sheet
         with open_executor(workers if not reuse else 1, cluster, shared=[out, subject_folder]) as executor:
             cap = Path(out) / "capture" if reuse else synthesize(
                 out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite,
-                executor=executor)
+                executor=executor, subject_options=options, report=lambda line: click.echo(f"subject: {line}"))
         if performance is not None:
             from .recording import record_performance
 

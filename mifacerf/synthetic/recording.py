@@ -293,7 +293,7 @@ def record_performance(out, seconds: float = 2.0, fps: float = 60.0, size: int |
     from tqdm.auto import tqdm
 
     from . import SubjectScene
-    from .synth import load_subject
+    from .synth import load_subject, subject_from_truth
 
     out = Path(out)
     cap = out / "capture"
@@ -311,11 +311,7 @@ def record_performance(out, seconds: float = 2.0, fps: float = 60.0, size: int |
                 raise FileNotFoundError(f"{tp}: missing (the user's template)")
             template = json.loads(tp.read_text())
     if subject is None:
-        folder = None
-        tj = out / "truth" / "truth.json"
-        if tj.exists():
-            folder = json.loads(tj.read_text()).get("subject", {}).get("folder")
-        subject = load_subject(folder)
+        subject = subject_from_truth(out) if (out / "truth" / "truth.json").exists() else load_subject(None)
     cams = [c.resized(size, size) if size else c for c in cameras]
     sc = make_script(seconds, fps, seed, controls=subject.controls)
     n = sc.n_frames

@@ -31,11 +31,48 @@ from .olat import render_olat
 TRUTH_FORMAT = "mifacerf.truth"
 
 
-def load_subject(subject_folder: str | os.PathLike | None = None):
-    """The default procedural subject, or a user's blendshape subject from a folder."""
+def load_subject(subject_folder: str | os.PathLike | None = None, options: dict | None = None, cameras=None):
+    """The default procedural subject, or a user's blendshape subject from a folder (``options``:
+    :func:`~.mesh_subject.load_mesh_subject` keywords such as ``scale``, ``n_dots``, ``shapes``;
+    ``cameras``: the capture cameras, which decide where the dots go)."""
     from . import default_subject, load_mesh_subject
 
-    return default_subject() if subject_folder is None else load_mesh_subject(subject_folder)
+    if subject_folder is None:
+        return default_subject()
+    return load_mesh_subject(subject_folder, cameras=cameras, **(options or {}))
+
+
+def subject_folder_of(out: str | os.PathLike, truth: dict) -> Path | None:
+    """The subject folder a synth output was made from (None: the embedded head). ``truth.json``
+    records it relative to the output folder (and absolute, as it was then); a folder found at
+    neither place is an error naming both."""
+    entry = truth.get("subject", {})
+    rel, absolute = entry.get("folder_relative"), entry.get("folder")
+    if rel is None and absolute is None:
+        return None
+    out = Path(out)
+    cands = ([out / rel] if rel is not None else []) + ([Path(absolute)] if absolute is not None else [])
+    for c in cands:
+        if c.is_dir():
+            return c
+    where = " nor ".join(str(c) for c in cands)
+    raise FileNotFoundError(f"{out / 'truth' / 'truth.json'}: the subject folder is gone: neither {where} exists; "
+                            "move the folder back (or edit \"folder_relative\" in truth.json)")
+
+
+def subject_from_truth(out: str | os.PathLike, cameras=None):
+    """The subject of a synth output folder (or of its truth/ folder), loaded as ``mifacerf synth``
+    loaded it: the folder found by :func:`subject_folder_of`, the options recorded, the capture's cameras."""
+    out = Path(out)
+    if (out / "truth.json").exists() and not (out / "truth").is_dir():
+        out = out.parent
+    truth = read_truth(out)
+    folder = subject_folder_of(out, truth)
+    if cameras is None and folder is not None and (out / "capture").is_dir():
+        from ..formats.capture import Capture
+
+        cameras = Capture(out / "capture").rig.cameras
+    return load_subject(folder, truth.get("subject", {}).get("options"), cameras)
 
 
 def choose_expressions(subject, preset: RigPreset, names: list[str] | None = None):
@@ -63,8 +100,12 @@ def write_truth_expression(truth_dir: Path, name: str, params: np.ndarray, pose)
 
 def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=None, expressions=None,
                overwrite: bool = False, progress: bool = True, rig: Rig | None = None, seed: int = 0,
-               executor=None) -> Path:
+               executor=None, subject_options: dict | None = None, report=None) -> Path:
     """Render the capture of a synthetic subject into ``out``; returns the capture folder.
+
+    ``subject_options``: keywords for a user's subject (:func:`~.mesh_subject.load_mesh_subject`:
+    ``scale``, ``n_dots``, ``shapes``, ``placement``), recorded in ``truth.json``; ``report``: called with
+    each line the subject's loader reports (what was read, repaired, placed, the template's coverage).
 
     ``executor`` (:mod:`mifacerf.execution`): on a cluster each (expression, camera) take is one unit
     (:func:`synth_take`: a worker renders its images and writes them into the shared capture folder through
@@ -79,8 +120,11 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
     cap_dir, truth_dir = out / "capture", out / "truth"
     if (cap_dir / "manifest.json").exists() and not overwrite:
         raise CaptureError(f"{cap_dir}: already holds a complete capture; use --overwrite or another folder")
-    subject = load_subject(subject_folder)
     rig = rig or pre.rig()
+    subject_options = {k: v for k, v in (subject_options or {}).items() if v is not None}
+    subject = load_subject(subject_folder, subject_options, rig.cameras)
+    for line in getattr(subject, "report", []) if report is not None else []:
+        report(line)
     exprs = choose_expressions(subject, pre, expressions)
     writer = CaptureWriter(cap_dir, rig, [ExpressionEntry(e.name, e.category) for e in exprs],
                            extra={"subject": {"name": getattr(subject, "name", "synthetic"), "synthetic": True},
@@ -89,7 +133,10 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
     write_json_atomic(truth_dir / "truth.json", {
         "format": TRUTH_FORMAT, "version": 1, "preset": pre.name,
         "subject": {"name": getattr(subject, "name", "synthetic"),
-                    "folder": None if subject_folder is None else str(Path(subject_folder).resolve())},
+                    "folder": None if subject_folder is None else str(Path(subject_folder).resolve()),
+                    "folder_relative": None if subject_folder is None else
+                    os.path.relpath(Path(subject_folder).resolve(), out.resolve()),
+                    "options": subject_options},
         "controls": [c.name for c in subject.controls],
         "expressions": [{"name": e.name, "category": e.category, "params": np.asarray(e.params).tolist()}
                         for e in exprs],
@@ -113,6 +160,7 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
                 else:
                     takes.append((e.name, np.asarray(e.params), cam.name))
         context = SynthContext(subject_folder, writer, pre.spp, seed)
+        context.subject_options = subject_options
         for sums in executor.imap(synth_take, takes, context):
             writer.checksums.update(sums)
             bar.update(len(lights))
@@ -140,8 +188,10 @@ def synth_take(context: SynthContext, unit: tuple) -> dict:
     from . import SubjectScene
 
     name, params, camera = unit
-    subject, scene, posed = worker_cached(("synth subject", context.subject_folder), lambda: (
-        lambda subj: (subj, SubjectScene(subj), {}))(load_subject(context.subject_folder)))
+    options = getattr(context, "subject_options", None)
+    subject, scene, posed = worker_cached(("synth subject", context.subject_folder, repr(options)), lambda: (
+        lambda subj: (subj, SubjectScene(subj), {}))(load_subject(context.subject_folder, options,
+                                                                  context.writer.rig.cameras)))
     if posed.get("name") != name:
         scene.set_pose(subject.pose(params))
         posed["name"] = name

@@ -12,7 +12,7 @@ import numpy as np
 from ..camera import Camera, ring_camera
 from ..formats.capture import Capture
 from ..environment import Environment, resolve
-from .synth import load_subject, read_truth
+from .synth import read_truth, subject_from_truth
 from .truth import render_truth
 
 
@@ -37,7 +37,7 @@ class TruthRenderer:
         out = Path(out)
         truth = read_truth(out)
         cap = Capture(out / "capture")
-        return cls(load_subject(truth["subject"].get("folder")), truth, cap.rig.cameras, dots=dots)
+        return cls(subject_from_truth(out, cap.rig.cameras), truth, cap.rig.cameras, dots=dots)
 
     # ------------------------------------------------------------- parameters
     def params_from_spec(self, spec: str, is_params: bool = False) -> np.ndarray:
