@@ -45,5 +45,6 @@ def from_jit(vec) -> np.ndarray:
     import drjit as dr
 
     if dr.depth_v(vec) > 1:   # component by component: np.asarray(vec) scatters rows at literal offsets N, 2N
+        dr.eval(vec)          # one kernel for all components (read back one by one, each would be its own)
         return np.stack([np.asarray(vec[i]) for i in range(len(vec))], axis=1)
     return np.asarray(vec)

@@ -232,6 +232,7 @@ class RotatedLightBasis:
                             m[1] * qx + m[4] * qy + m[7] * qz,
                             m[2] * qx + m[5] * qy + m[8] * qz)
             rgb = self._lookup(d)
+            dr.eval(*rgb)    # one kernel for the three channels
             vals = np.stack([np.asarray(c) for c in rgb], axis=-1).reshape(k, nq, 3).astype(np.float64)
             vals *= self.q_weights[None, :, None]
             out[sel] = np.add.reduceat(vals, self.cell_start, axis=1)

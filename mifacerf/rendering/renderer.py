@@ -280,6 +280,8 @@ class Renderer:
         (:func:`.parts.target_parts_from_weights` / :func:`.parts.target_parts_from_mesh`); None
         renders the skin only.
         """
+        import drjit as dr
+
         mi = ensure_plugins()  # a render registers the plugins too (an idempotent look-up)
         model = self.model
         stats = stats if stats is not None else RenderStats()
@@ -321,6 +323,7 @@ class Renderer:
         if sk.size:   # a camera that sees no skin (looking away) has nothing to shade
             c_sk, cov_sk, fell_back = lit.shade(to_jit(mi.UInt32, hits.tri[idx[sk]]),
                                                to_jit(mi.Vector3f, hits.bary[idx[sk]].T))
+            dr.eval(c_sk, cov_sk, fell_back)   # one shading kernel (each read-back would run its own)
             colour[sk] = from_jit(c_sk)
             covered[sk] = np.asarray(cov_sk).astype(bool)
             stats.fallback_samples += int(np.asarray(fell_back).sum())
@@ -356,6 +359,7 @@ class Renderer:
             col, cov = pf.shade(self._combined.scene.scene, to_jit(mi.UInt32, label.astype(np.uint32)),
                                 to_jit(mi.Point3f, q.T), to_jit(mi.Point3f, p_world.T),
                                 to_jit(mi.Vector3f, normal.T), to_jit(mi.Vector3f, view.T))
+            dr.eval(col, cov)
             col, cov = from_jit(col), np.asarray(cov).astype(bool)
             # part points that no reference view saw (e.g. the mouth's back hidden by the lips in the
             # reference): the part's mean colour in this frame, so the plate never shows through
