@@ -355,6 +355,110 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def compression_knob(model, synth_out, out, configs=("exact", "sh2", "sh3", "sh4", "sh6", "sh8"), n_frames: int = 3,
+                     size: int = 256, env: str = "sky", spp: int = 4, spp_truth: int = 64, seed: int = 7) -> dict:
+    """The compression knob (rank / order) against size, time and error, side by side in this process.
+
+    Every configuration (``exact`` or ``<method><rank>`` of a compressed copy the model holds) renders each of
+    ``n_frames`` bench frames (:func:`frames`) after a warm-up frame, one after another, so a loaded machine slows
+    them alike. Per configuration: data on disk, median seconds per frame and of the relight stage, PSNR on
+    the face mask against the path-traced truth and against the exact path. Writes ``knob.json`` and
+    ``knob.png`` (three panels over the knob: size, time, error) to ``out``; returns the report.
+    """
+    from ..rendering.api import load_model
+    from ..rendering.renderer import Renderer, RenderStats
+    from ..synthetic.truth_scene import TruthRenderer
+    from .masks import classify_pixels, face_mask
+    from .metrics import psnr
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    face = load_model(model)
+    envo = face.environment(env)
+    tr = TruthRenderer.from_synth(synth_out)
+    fr = frames(face.model, n_frames + 1, seed, size)
+    renderers = {}
+    for c in configs:
+        comp = compressed_config(c)
+        renderers[c] = Renderer(face.model) if comp is None else Renderer(face.model, method=comp[0], rank=comp[1])
+        renderers[c].cache_frames = False
+    rows = {c: {"seconds": [], "relight": [], "psnr_truth": [], "psnr_exact": []} for c in configs}
+    for i, f in enumerate(fr):
+        cam = face.camera((f["yaw"], f["pitch"]), size=size)
+        target, W = face.target(f["expression"])
+        parts = face.parts(f["expression"])
+        if i:
+            t = tr.render(tr.blend(f["expression"]), cam, env, spp=spp_truth, seed=100 + i)
+            mask = face_mask(classify_pixels(tr.scene(envo), cam)) & (t[..., 3] > 0.999)
+        ref = None
+        for c in configs:
+            st = RenderStats()
+            t0 = time.perf_counter()
+            img = renderers[c].render(target, W, cam, envo, spp=spp, stats=st, parts=parts)
+            dt = time.perf_counter() - t0
+            ref = img if ref is None else ref
+            if not i:
+                continue
+            m = mask & (img[..., 3] > 0.999)
+            rows[c]["seconds"].append(dt)
+            rows[c]["relight"].append(st.times.get("relight", 0.0))
+            rows[c]["psnr_truth"].append(psnr(img, t, m))
+            rows[c]["psnr_exact"].append(psnr(img, ref, m & (ref[..., 3] > 0.999)))
+    report = {"model": str(model), "size": size, "spp": spp, "spp_truth": spp_truth, "env": env, "frames": fr[1:],
+              "load": os.getloadavg(), "reference": configs[0], "rows": []}
+    for c in configs:
+        r = rows[c]
+        report["rows"].append({"config": c, "disk_bytes": disk_bytes(Path(model), c),
+                               "median_seconds": float(np.median(r["seconds"])),
+                               "median_relight_seconds": float(np.median(r["relight"])),
+                               "psnr_truth": float(np.mean(r["psnr_truth"])),
+                               "psnr_exact": float(np.mean(r["psnr_exact"])) if c != configs[0] else None})
+    (out / "knob.json").write_text(json.dumps(report, indent=1))
+    plot_knob(report, out / "knob.png")
+    return report
+
+
+def plot_knob(report: dict, path: Path) -> None:
+    """Size, time and error of every configuration over its knob, one panel each (lines per method)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = report["rows"]
+    ref = rows[0]
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.4), dpi=120)
+    by_method: dict = {}
+    for r in rows[1:]:
+        comp = compressed_config(r["config"])
+        if comp:
+            by_method.setdefault(comp[0], []).append((comp[1], r))
+    for method, pts in by_method.items():
+        pts.sort()
+        k = [p[0] for p in pts]
+        axes[0].plot(k, [ref["disk_bytes"] / p[1]["disk_bytes"] for p in pts], "o-", label=method)
+        axes[1].plot(k, [ref["median_seconds"] / p[1]["median_seconds"] for p in pts], "o-", label=f"{method}: frame")
+        axes[1].plot(k, [ref["median_relight_seconds"] / max(p[1]["median_relight_seconds"], 1e-9) for p in pts],
+                     "s--", label=f"{method}: relight stage")
+        axes[2].plot(k, [p[1]["psnr_truth"] - ref["psnr_truth"] for p in pts], "o-", label=method)
+    axes[0].axhline(10, color="grey", lw=0.8, ls=":")
+    axes[1].axhline(5, color="grey", lw=0.8, ls=":")
+    axes[2].axhline(-1, color="grey", lw=0.8, ls=":")
+    axes[0].set_ylabel(f"× smaller than {ref['config']}")
+    axes[1].set_ylabel(f"× faster than {ref['config']}")
+    axes[2].set_ylabel(f"PSNR vs truth − {ref['config']}'s (dB)")
+    for ax in axes:
+        ax.set_xlabel("order / rank")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_yscale("log")
+    fig.suptitle(f"compression knob: {report['size']}² frames, {len(report['frames'])} frames, "
+                 f"load {report['load'][0]:.1f} (dotted: the issue's targets)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
 @click.command("bench-worker")
 @click.argument("job", type=click.Path(exists=True, dir_okay=False))
 @click.argument("config")
