@@ -30,6 +30,10 @@ that mesh) are shaded as §6.3's, with visibility ray-traced against the whole s
    * - light_basis
      - string — the environment → light-stage rule, a ``LIGHT_BASIS_METHODS`` name
        (:mod:`mifacerf.environment`; default ``voronoi``, or ``hat``)
+   * - light_epsilon, depth_tolerance, lights
+     - float, float, string — the Python ``Renderer``'s skips by its names: lights below ``light_epsilon``
+       × the brightest light's weight everywhere are left out (default 1e-4; 0 keeps every light), the
+       texel depth test (metres, default 0.004), a light subset ``"i,j,..."`` (methods with light subsets)
    * - (nested)
      - integrator — for everything but the face (default ``path``, max_depth 2)
 
@@ -58,12 +62,33 @@ def _environment_of(scene, spec: str | None, height: int = 128):
     if spec:
         return resolve(spec)
     for em in scene.emitters():
-        if mi.has_flag(em.flags(), mi.EmitterFlags.Infinite):
+        if _is_environment(em):
             dirs, _ = latlong_grid(height)
             rad = evaluate_emitter(em, dirs.reshape(-1, 3)).reshape(height, 2 * height, 3)
             return Environment(np.maximum(rad, 0), "scene-emitter")
+    others = ", ".join(_emitter_name(em) for em in scene.emitters())
     raise ValueError("the facerf integrator needs an environment: give 'environment' or put an "
-                     "infinite emitter (envmap, constant, sunsky) in the scene")
+                     "infinite emitter (envmap, constant, sunsky) in the scene"
+                     + (f"; the exact path cannot evaluate the scene's {others}: light the face with them "
+                        "through the facerf_bsdf material and the direct or path integrator" if others else ""))
+
+
+def _emitter_name(em) -> str:
+    """``'<id>' (<kind>)`` of a Mitsuba emitter, for messages."""
+    kind = str(em).split("[", 1)[0].strip() or type(em).__name__    # PointLight, SpotLight, DirectionalEmitter, ...
+    return f"emitter {em.id()!r} ({kind})" if em.id() else f"{kind} emitter"
+
+
+def finite_emitters(scene) -> list[str]:
+    """Names of the scene's emitters that are not infinite (point, spot, directional, area): the exact path does
+    not light the face with them (the nested integrator still lights the rest of the scene)."""
+    return [_emitter_name(em) for em in scene.emitters() if not _is_environment(em)]
+
+
+def _is_environment(em) -> bool:
+    """An infinite emitter evaluated by direction (envmap, constant, sunsky), not a delta one (directional)."""
+    f = em.flags()
+    return mi.has_flag(f, mi.EmitterFlags.Infinite) and not mi.has_flag(f, mi.EmitterFlags.DeltaDirection)
 
 
 def _face_shape(scene, face_id: str | None):
@@ -129,6 +154,22 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
 
             compression_method(self.chosen.get("method", "exact"))
             lookup(LIGHT_BASIS_METHODS, self.chosen.get("basis", "voronoi"), "light basis")
+        # the Python API's skips, by Renderer's names: light_epsilon (0: no light skipped), depth_tolerance,
+        # lights (a light subset, "0,3,7": compressed methods with light subsets only)
+        if "light_epsilon" in props:
+            self.chosen["light_epsilon"] = float(props["light_epsilon"])
+            if not self.chosen["light_epsilon"] >= 0:
+                raise ValueError(f"facerf: parameter 'light_epsilon' must be >= 0, got {props['light_epsilon']}")
+        if "depth_tolerance" in props:
+            self.chosen["depth_tolerance"] = float(props["depth_tolerance"])
+            if not self.chosen["depth_tolerance"] > 0:
+                raise ValueError(f"facerf: parameter 'depth_tolerance' must be > 0, got {props['depth_tolerance']}")
+        if "lights" in props:
+            try:
+                self.chosen["lights"] = np.array([int(x) for x in str(props["lights"]).split(",") if x.strip()])
+            except ValueError:
+                raise ValueError(f"facerf: parameter 'lights': light indices 'i,j,...', got {props['lights']!r}") \
+                    from None
         self._renderers = {}
         self.face_id = props["face"] if "face" in props else None
         self.env_spec = props["environment"] if "environment" in props else None
@@ -181,6 +222,11 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         view_checks(pose.target, camera, face.model.cameras, self.stats)
         plan = plan_frame(face.model, pose.target, pose.weights, camera)
         env = _environment_of(scene, self.env_spec)
+        ignored = finite_emitters(scene)
+        if ignored:
+            self.stats.warn(f"facerf: the exact path lights the face with the environment only; "
+                            f"{', '.join(ignored)} light the rest of the scene but not the face (use the "
+                            f"facerf_bsdf material with the direct or path integrator)")
         self.frame = renderer.light_frame(plan, env, self.stats)
         self._label = to_jit(mi.UInt32, shape.label)
         self.n_parts = len(shape.geometry.part_names)

@@ -124,6 +124,9 @@ def render_scene_file(xml_path, output, params: dict | None = None, spp: int | N
     try:
         img = np.asarray(mi.render(scene, spp=spp or 0), np.float32)
     except RuntimeError as exc:
+        cause = exc.__cause__
+        if isinstance(cause, (ValueError, MifacerfError)):   # a plugin's own error inside mi.render's custom op
+            raise SceneError(f"{xml_path}: {cause}") from exc
         raise (_plugin_error(exc, xml_path) or exc) from exc
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)

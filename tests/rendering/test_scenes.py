@@ -161,6 +161,57 @@ def test_bad_input_names_the_parameter(toy_model, plugins, tmp_path):
         params.update()
 
 
+def test_bad_emitters_and_plugin_parameters_name_themselves(toy_model, plugins):
+    """An emitter the exact path cannot evaluate (point, directional) in a facerf scene: one line naming it and
+    the material to use instead; beside an environment, a RenderWarning that the face ignores it. Bad values of
+    the plugins' method and skip parameters: one line naming the parameter."""
+    from mifacerf.camera import Camera
+    from mifacerf.rendering.renderer import RenderWarning
+    from mifacerf.rendering.sensors import sensor_dict
+
+    mi = plugins
+    cam = Camera.look_at("e", [0.12, 0.1, 1.0], [0, 0, 0], width=8, height=8, focal=32.0)
+    face = {"type": "facerf_face", "model": str(toy_model.root), "bsdf": {"type": "facerf_bsdf"}}
+    lamp = {"type": "point", "position": [0, 0, 2], "intensity": 1.0}
+
+    def scene(integrator, **emitters):
+        return mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor_dict(cam, spp=1),
+                             "face": face, **emitters})
+
+    with pytest.raises(RuntimeError) as info:
+        mi.render(scene({"type": "facerf"}, lamp=lamp, sun={"type": "directional", "direction": [0, 0, -1]}))
+    message = str(info.value.__cause__)
+    assert "needs an environment" in message and "'lamp' (PointLight)" in message and "facerf_bsdf" in message
+    assert "\n" not in message
+    with pytest.warns(RenderWarning, match="'lamp' \\(PointLight\\) light the rest of the scene but not the face"):
+        mi.render(scene({"type": "facerf"}, lamp=lamp, sky={"type": "constant"}))
+    for integrator, bsdf, match in (
+            ({"type": "facerf", "light_epsilon": -1.0}, {}, "parameter 'light_epsilon' must be >= 0"),
+            ({"type": "facerf", "depth_tolerance": 0.0}, {}, "parameter 'depth_tolerance' must be > 0"),
+            ({"type": "facerf", "lights": "0,x"}, {}, "parameter 'lights': light indices"),
+            ({"type": "direct"}, {"light_basis": "nearest"}, "nearest.*voronoi"),
+            ({"type": "direct"}, {"depth_tolerance": -1.0}, "depth_tolerance must be > 0")):
+        with pytest.raises(Exception, match=match):
+            mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor_dict(cam, spp=1),
+                          "face": {**face, "bsdf": {"type": "facerf_bsdf", **bsdf}}, "sky": {"type": "constant"}})
+
+
+def test_the_integrator_takes_the_renderers_skips_by_name(toy_model, plugins):
+    """light_epsilon, depth_tolerance from the scene reach the integrator's Renderer (the Python API's names)."""
+    from mifacerf.camera import Camera
+    from mifacerf.rendering.sensors import sensor_dict
+
+    mi = plugins
+    cam = Camera.look_at("e", [0.12, 0.1, 1.0], [0, 0, 0], width=8, height=8, focal=32.0)
+    sc = mi.load_dict({"type": "scene", "sensor": sensor_dict(cam, spp=1), "sky": {"type": "constant"},
+                       "integrator": {"type": "facerf", "light_epsilon": 0.0, "depth_tolerance": 0.002},
+                       "face": {"type": "facerf_face", "model": str(toy_model.root)}})
+    img = np.asarray(mi.render(sc))
+    r = sc.integrator().renderer(sc.integrator().face)
+    assert r.light_epsilon == 0.0 and r.depth_tolerance == 0.002 and np.isfinite(img).all()
+    assert sc.integrator().stats.lights_skipped == 0
+
+
 def test_mifacerf_render_takes_the_familiar_options(toy_model, tmp_path):
     from click.testing import CliRunner
 
