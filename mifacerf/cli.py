@@ -138,7 +138,7 @@ class LazyGroup(click.Group):
         (docs/reliability.md); click's usage errors keep click's own message (exit 2). Python warnings
         are printed as ``mifacerf <command>: warning: <message>``.
         """
-        from .errors import MifacerfError, exit_code_of, message_of
+        from .errors import EXIT_REFUSED, RefusedError, exit_code_of, message_of
 
         debug = bool(ctx.params.get("debug")) or os.environ.get("MIFACERF_DEBUG", "") not in ("", "0")
         with warnings.catch_warnings():
@@ -152,10 +152,9 @@ class LazyGroup(click.Group):
             except click.ClickException as exc:
                 if debug:
                     raise
-                # a command's wrapped error keeps its code (a lock refusal: 3, not click's 1)
-                cause = exc.__cause__
+                # a lock refusal a command wrapped in its click error still exits 3 (not click's 1)
                 self._fail(ctx, exc.format_message(),
-                           exit_code_of(cause) if isinstance(cause, MifacerfError) else exc.exit_code)
+                           EXIT_REFUSED if isinstance(exc.__cause__, RefusedError) else exc.exit_code)
             except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 (the top of the program)
                 if debug:
                     raise
