@@ -2,6 +2,8 @@
 
     .venv/bin/python scripts/reliability_table.py            # print the table
     .venv/bin/python scripts/reliability_table.py --write    # also replace it in docs/reliability.md
+    .venv/bin/python scripts/reliability_table.py --from-xml REPORT.xml --write   # from a pytest --junitxml
+                                                             # report of a run that included tests/reliability
 
 Every test of tests/reliability is one fault (a parametrised test: one per parameter set) tried against
 one stage; it asserts what happens after the fault — nothing lost (files present before byte-identical
@@ -29,6 +31,7 @@ RULES = [
     (r"test_bad_options", r"every_command", ("every command", "bad option value (coverage)", "clear error")),
     (r"test_bad_options", r"\[(\S+) ", None),          # stage = the command in the parameter id
     (r"test_steps", r"sigkill", ("demo", "kill (SIGKILL)", "recovered")),
+    (r"test_model_transactions", r"verify_passes", ("model", "sound input (control)", "correct, nothing to report")),
     (r"test_steps", r"", ("demo", "second run, nothing changed", "correct, nothing to report")),
     (r"test_model_transactions", r"template_inconsistent", ("build", "inconsistent input (template)", "clear error")),
     (r"manifests", r"checked_when_read", ("capture/performance", "corrupt/truncate/delete a file", "clear error")),
@@ -63,7 +66,7 @@ STAGE_OF_MODULE = {"test_model_transactions": "build", "test_registration_transa
 
 #: module -> [(test-name regex, stage)]: the stage of a module's tests by name (before STAGE_OF_MODULE)
 STAGE_BY_NAME = {"test_model_transactions": [(r"compress", "compress")],
-                 "test_output_transactions": [(r"drive", "drive"), (r"track", "track"),
+                 "test_output_transactions": [(r"track", "track"), (r"drive", "drive"),
                                               (r"output_folder", "formats (files, locks)")]}
 
 
@@ -85,19 +88,26 @@ def classify(module: str, name: str) -> tuple[str, str, str]:
     return module, "other", "clear error"
 
 
+def read_junit(xml: Path) -> list[tuple[str, str, bool]]:
+    """(module, test name, failed) of every tests/reliability case a JUnit XML report holds (not skipped)."""
+    cases = []
+    for tc in ET.parse(xml).getroot().iter("testcase"):
+        classname = tc.get("classname", "")
+        if "reliability" not in classname.split("."):
+            continue
+        failed = any(c.tag in ("failure", "error") for c in tc)
+        skipped = any(c.tag == "skipped" for c in tc)
+        if not skipped:
+            cases.append((classname.split(".")[-1], tc.get("name", ""), failed))
+    return cases
+
+
 def run(extra=()) -> list[tuple[str, str, bool]]:
     with tempfile.TemporaryDirectory() as tmp:
         xml = Path(tmp) / "junit.xml"
         subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/reliability",
                         f"--junitxml={xml}", *extra], cwd=ROOT)
-        cases = []
-        for tc in ET.parse(xml).getroot().iter("testcase"):
-            module = tc.get("classname", "").split(".")[-1]
-            failed = any(c.tag in ("failure", "error") for c in tc)
-            skipped = any(c.tag == "skipped" for c in tc)
-            if not skipped:
-                cases.append((module, tc.get("name", ""), failed))
-    return cases
+        return read_junit(xml)
 
 
 def table(cases) -> str:
@@ -125,7 +135,10 @@ def table(cases) -> str:
 
 
 def main(argv) -> int:
-    cases = run([a for a in argv if a != "--write"])
+    if "--from-xml" in argv:      # the report of a run that included tests/reliability (e.g. the whole suite)
+        cases = read_junit(Path(argv[argv.index("--from-xml") + 1]))
+    else:
+        cases = run([a for a in argv if a != "--write"])
     text = table(cases)
     print(text)
     if "--write" in argv:
