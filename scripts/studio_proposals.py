@@ -3,6 +3,7 @@ user's (truth-derived) hand inputs — the tables in docs/registration.md.
 
     python scripts/studio_proposals.py OUT [--preset tiny] [--expressions neutral,smile,...]
                                        [--capture CAPTURE --truth TRUTH] [--proposed-template] [--json FILE]
+    python scripts/studio_proposals.py OUT --capture CAPTURE --truth TRUTH --check-template-only
 
 1. ``mifacerf synth OUT/synth`` (skipped when it exists, or when ``--capture``/``--truth`` name an
    existing synthetic capture and its truth, which are only read: the copies below hard-link the images);
@@ -152,6 +153,30 @@ def evaluate_proposed_template(cap_dir: Path, truth: Path, truth_dots: np.ndarra
     return rows, match
 
 
+def template_vs_user(doc: dict, user) -> dict:
+    """The proposed template's special vertices against the synthetic user's template (mm): every lip /
+    eyelid margin vertex to the nearest vertex of the user's same margins (range), the eye centres."""
+    from mifacerf.registration.hand import Template
+
+    t = Template.from_dict(doc)
+    out = {}
+    for group, names in (("lips", ("lip_upper", "lip_lower")), ("lids_L", ("lid_upper_L", "lid_lower_L")),
+                         ("lids_R", ("lid_upper_R", "lid_lower_R"))):
+        if not all(n in t.margins and n in user.margins for n in names):
+            out[group] = None
+            continue
+        P = t.vertices[np.unique(np.concatenate([t.margins[n] for n in names]))]
+        Q = user.vertices[np.unique(np.concatenate([user.margins[n] for n in names]))]
+        d = np.min(np.linalg.norm(P[:, None] - Q[None], axis=-1), axis=1) * 1000
+        out[group] = [round(float(d.min()), 1), round(float(np.median(d)), 1), round(float(d.max()), 1)]
+    for side in ("L", "R"):
+        a, b = t.eyes.get(side, {}).get("centre"), user.eyes.get(side, {}).get("centre")
+        out[f"eye_{side}"] = None if a is None or b is None else round(
+            float(np.linalg.norm(np.subtract(a, b))) * 1000, 1)
+    out["dots"] = int(len(t.dot_ids))
+    return out
+
+
 def _copy_capture(src: Path, dst: Path) -> None:
     """A copy of a capture folder: images and cache hard-linked (never modified in place), the rest copied."""
     import os
@@ -179,6 +204,8 @@ def main(argv=None) -> int:
     ap.add_argument("--truth", type=Path, default=None, help="its truth folder (read only; with --capture)")
     ap.add_argument("--proposed-template", action="store_true",
                     help="the template too is the studio's proposal (no hand input at all)")
+    ap.add_argument("--check-template-only", action="store_true",
+                    help="only propose the template and compare its margins and eyes with the user's (mm)")
     ap.add_argument("--tolerance-px", type=float, default=2.0)
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -209,6 +236,13 @@ def main(argv=None) -> int:
                 shutil.rmtree(truth)
             shutil.move(str(synth / "truth"), truth)
         source = synth / "capture"
+    if args.check_template_only:
+        r = propose_template(Session(source))
+        user_tpl = Template.from_dict(json.loads((source / "hand" / "template.json").read_text()))
+        print(r["note"])
+        print("proposed vs the user's template (mm; margins: min / median / max to the nearest user vertex):",
+              json.dumps(template_vs_user(r["template"], user_tpl)))
+        return 0
     hand_cap = out / "hand" / "capture"
     prop_cap = out / ("proposed-template" if args.proposed_template else "proposed") / "capture"
     t0 = time.time()
@@ -248,6 +282,9 @@ def main(argv=None) -> int:
         s.save_template(r["template"])
         tnote = r["note"]
         print(f"  template: {tnote}", flush=True)
+        user_tpl = Template.from_dict(json.loads((hand_cap / "hand" / "template.json").read_text()))
+        print(f"  proposed vs the user's template (mm): {json.dumps(template_vs_user(r['template'], user_tpl))}",
+              flush=True)
     for name in order:
         p = propose_expression(s, name)
         sources[name] = p["source"]

@@ -26,7 +26,7 @@ def _chroma(img: np.ndarray) -> np.ndarray:
     return img / np.maximum(img.sum(-1, keepdims=True), 1e-9)
 
 
-def _largest(mask: np.ndarray, min_px: int = 4, keep: int = 1, score=None) -> list:
+def _largest(mask: np.ndarray, min_px: int = 4, keep: int = 1) -> list:
     """The ``keep`` largest connected components (bool masks) of ``mask`` with at least ``min_px`` pixels."""
     from scipy.ndimage import label
 

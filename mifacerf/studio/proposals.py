@@ -133,7 +133,7 @@ def propose_expression(session, name: str) -> dict:
         nodot = vis[c] & ~tpl.is_dot[coarse]
         clicks[c, good] = pk[good]
         clicks[c, nodot] = uvV[c, nodot]
-    moved = _mouth_corners_from_images(session, name, tpl, coarse, clicks, vis, fp)
+    moved = {} if src == "template" else _mouth_corners_from_images(session, name, tpl, coarse, clicks, vis, fp)
     tr = triangulate(session.cams, clicks, max_error=1.0)
     ok = tr.ok & (tr.max_error <= 1.0)
     state = {"coarse": {}, "rotoscope": {"curves": {}, "points": {}, "eyes_look_at": None}, "overrides": {}}
@@ -220,7 +220,9 @@ def propose_expression(session, name: str) -> dict:
                     + (f" ({int(unsure.sum())} left for you: {coarse[unsure].tolist()}, not found on a dot)"
                        if unsure.any() else "") + "; "
                     f"{len(state['rotoscope']['curves'])} curves and {len(state['rotoscope']['points'])} marks "
-                    "projected from the template carried by the dots"}
+                    "projected from the template carried by the dots"
+                    + (f"; check the flagged ones: " + "; ".join(f"{v}: {why}" for v, why in flagged["coarse"].items())
+                       if flagged["coarse"] else "")}
 
 
 def _mouth_corners_from_images(session, name: str, tpl, coarse: np.ndarray, clicks: np.ndarray, vis: np.ndarray,

@@ -170,26 +170,31 @@ def test_port_in_use_next_free_or_clear_message(capture):
         s.close()
 
 
+def _register(c, h, name):
+    """Run "register this expression" through the API and wait for the job (its final state)."""
+    import time
+
+    job = c.post(f"/api/register/{name}", headers=h).json()
+    for _ in range(900):
+        j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
+        if j["state"] in ("done", "failed"):
+            return j
+        time.sleep(0.2)
+    raise AssertionError("registration did not finish")
+
+
 @pytest.mark.slow
 def test_register_with_a_hand_fix_and_proposals_read_no_truth(capture, studio_capture, client_for):
     """Register the neutral through the API, fix one fiducial by hand, register again: the fix is kept
     (status hand_fixed, at the fixed position); the proposals for the smile come from the neutral.
     Nothing under the truth folder is opened."""
-    import time
-
     _, truth = studio_capture
     with watch_opens(truth) as opened:
         c, tok = client_for(capture)
         h = _h(tok)
 
         def register(name):
-            job = c.post(f"/api/register/{name}", headers=h).json()
-            for _ in range(600):
-                j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
-                if j["state"] in ("done", "failed"):
-                    return j
-                time.sleep(0.2)
-            raise AssertionError("registration did not finish")
+            return _register(c, h, name)
         assert register("neutral")["state"] == "done"
         g = c.get("/api/expression/neutral", headers=h).json()
         st = g["geometry"]["status"]
@@ -225,7 +230,6 @@ def test_from_no_hand_inputs_to_registered_expressions(capture, studio_capture, 
     proposed, accepted unedited and registered. Registration runs on nothing but the studio's
     proposals, and nothing under the truth folder is opened on the way."""
     import shutil
-    import time
 
     _, truth = studio_capture
     shutil.rmtree(capture / "hand")
@@ -252,13 +256,7 @@ def test_from_no_hand_inputs_to_registered_expressions(capture, studio_capture, 
         assert max(lips) < tpl["eyes"]["eye_left"]["centre"][1] - 0.04
 
         def register(name):
-            job = c.post(f"/api/register/{name}", headers=h).json()
-            for _ in range(900):
-                j = c.get(f"/api/jobs/{job['id']}", headers=h).json()
-                if j["state"] in ("done", "failed"):
-                    return j
-                time.sleep(0.2)
-            raise AssertionError("registration did not finish")
+            return _register(c, h, name)
         for name in ("neutral", "smile"):
             g = c.get(f"/api/expression/{name}", headers=h).json()
             prop = c.get(f"/api/proposals/{name}", headers=h).json()

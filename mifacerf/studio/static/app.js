@@ -606,11 +606,16 @@ function drawView(camName) {
   if (checked("ov-proposals") && S.proposal && S.proposal.state) {
     const st = S.proposal.state;
     ctx.strokeStyle = PROPOSAL_COLOUR; ctx.fillStyle = PROPOSAL_COLOUR; ctx.lineWidth = 1.2;
-    for (const item of Object.values(st.coarse || {})) {
+    const flagged = (S.proposal.flagged && S.proposal.flagged.coarse) || {};
+    for (const [vid, item] of Object.entries(st.coarse || {})) {
       const c = item.clicks[camName];
       if (!c) continue;
       const [x, y] = P(c[0], c[1]);
-      ctx.beginPath(); ctx.rect(x - 3, y - 3, 6, 6); ctx.stroke();
+      if (flagged[vid]) {                     // a proposal that looks wrong: the flagged colour, its id
+        ctx.save(); ctx.strokeStyle = STATUS_COLOURS.flagged; ctx.fillStyle = STATUS_COLOURS.flagged; ctx.lineWidth = 2;
+        ctx.beginPath(); ctx.rect(x - 5, y - 5, 10, 10); ctx.stroke();
+        ctx.font = "11px sans-serif"; ctx.fillText(`${vid}?`, x + 6, y - 6); ctx.restore();
+      } else { ctx.beginPath(); ctx.rect(x - 3, y - 3, 6, 6); ctx.stroke(); }
     }
     ctx.setLineDash([4, 3]);
     for (const [name, views] of Object.entries(st.rotoscope.curves || {})) {

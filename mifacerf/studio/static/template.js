@@ -55,27 +55,20 @@ function composeMaps(a, b) {
   if (!b) return a;
   return a.map((v) => (v < 0 ? -1 : b[v]));
 }
-function tplUndo() {
-  if (!S.tundo.length) return;
-  const snap = S.tundo.pop();
+// undo and redo: restore the top of one history, pushing the current state onto the other; the snapshot's
+// map renumbers the hand inputs back, the pushed one carries its inverse (to re-apply it)
+function tplStep(from, to) {
+  if (!from.length) return;
+  const snap = from.pop();
   const cur = tplSnapshot(null);
-  // redo re-applies the forward map: the inverse of the step's back map
   cur.map = snap.map ? invertMap(snap.map, JSON.parse(snap.doc).vertices.length) : null;
-  S.tredo.push(cur);
+  to.push(cur);
   S.tpl.doc = JSON.parse(snap.doc); S.tpl.uv = JSON.parse(snap.uv);
   S.tplMap = composeMaps(S.tplMap, snap.map);
   tplSave(); drawAll();
 }
-function tplRedo() {
-  if (!S.tredo.length) return;
-  const snap = S.tredo.pop();
-  const cur = tplSnapshot(null);
-  cur.map = snap.map ? invertMap(snap.map, JSON.parse(snap.doc).vertices.length) : null;
-  S.tundo.push(cur);
-  S.tpl.doc = JSON.parse(snap.doc); S.tpl.uv = JSON.parse(snap.uv);
-  S.tplMap = composeMaps(S.tplMap, snap.map);
-  tplSave(); drawAll();
-}
+function tplUndo() { tplStep(S.tundo, S.tredo); }
+function tplRedo() { tplStep(S.tredo, S.tundo); }
 function invertMap(map, n) {
   const inv = new Array(n).fill(-1);
   map.forEach((v, i) => { if (v >= 0) inv[v] = i; });
