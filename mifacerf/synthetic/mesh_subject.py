@@ -464,6 +464,7 @@ class MeshSubject:
         tpl, info = build_mesh_template(self.skin_rest, self.skin_faces, occ, cameras, n_dots, dot_seed,
                                         self.eye_centres)
         tpl.eyes = {n: {"centre": self.eye_centres[n], "radius": self.eye_radius} for n in self.eye_centres}
+        tpl = self._extensions(tpl)
         self.template, self.template_info = tpl, info
         self.dot_tri, self.dot_bary = info["dot_tri"], info["dot_bary"]
         self.dots_neutral = np.einsum("nk,nkj->nj", self.dot_bary, self.skin_rest[self.skin_faces[self.dot_tri]])
@@ -483,6 +484,25 @@ class MeshSubject:
         for line in report[1:]:
             if "left out" in line or "xatlas" in line or "dropped" in line:
                 warnings.warn(line, MeshSubjectWarning, stacklevel=3)
+
+    def _extensions(self, tpl):
+        """The template with the extensions beyond the dots (scalp, ears, neck, back of the head; issue 16),
+        cut just below the template's lowest vertex; a skin they cannot be made on keeps the face template
+        (reported)."""
+        from .template_extensions import add_extensions
+
+        cut = float(tpl.neutral[:, 1].min()) - 0.002
+        if cut <= float(self.skin_rest[:, 1].min()):
+            self.report.append("extensions: none (the dots reach the skin's lowest edge)")
+            return tpl
+        try:
+            out = add_extensions(tpl, self.skin_rest, self.skin_faces, neck_cut_y=cut)
+        except ValueError as exc:
+            self.report.append(f"extensions: not made ({exc})")
+            return tpl
+        self.report.append(f"extensions: {len(out.kinds) - len(tpl.kinds)} vertices ("
+                           + ", ".join(f"{k} {len(v['vertices'])}" for k, v in out.extensions.items()) + ")")
+        return out
 
     # ------------------------------------------------------------------------------------ parts
     def _placement(self, mesh, V0, faces_of, spec):

@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from .template import REGION_NAMES, Template
+from .template_extensions import boundary_loops
 
 MIN_COS = 0.25
 
@@ -148,27 +149,6 @@ def sample_dots(V, F, mask, n: int, seed: int = 0, avoid=None, avoid_dist: float
                                "fewer dots (--dots)")
     sel = best[:n]                      # the border ones first, then the interior in random order
     return ids[tri_all[sel]].astype(np.int32), bary_all[sel]
-
-
-def boundary_loops(F) -> list:
-    """Closed boundary loops (lists of vertex ids, in the faces' winding order) of a triangle mesh;
-    at a vertex where two loops touch, each loop keeps its own edges."""
-    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]).tolist()
-    S = set(map(tuple, E))
-    nxt = {}
-    for a, b in S:
-        if (b, a) not in S:
-            nxt.setdefault(a, []).append(b)
-    loops = []
-    for a in sorted(nxt):
-        while nxt.get(a):
-            loop, v = [a], nxt[a].pop()
-            while v != a and nxt.get(v):
-                loop.append(v)
-                v = nxt[v].pop()
-            if v == a and len(loop) >= 3:
-                loops.append(loop)
-    return loops
 
 
 def _graph(V, F, n_src, src_links):

@@ -65,13 +65,12 @@ def test_mesh_subject_interface(folder, mi):
     np.testing.assert_allclose(pose.dots, want)
     assert pose.textures.albedo.shape == (512, 512, 3)
     assert (np.abs(pose.textures.albedo - [0.9, 0.85, 0.1]).max(-1) < 0.05).sum() > 50   # yellow dots
-    # template: the dots, lip margins round the slot, a mesh without the slot, coarse points, regions
+    # template: the dots, a mesh without the slot, coarse points, regions, extensions beyond the dots
     t = s.template
     assert t.kinds.count("dot") == 300 and len(t.coarse_points) == 18 and t.teeth == {} and t.eyes == {}
-    assert "mouth" in t.holes and t.kinds.count("lip_corner") == 2
     assert len(t.triangles) > 400
-    cen = t.neutral[t.triangles].mean(1) - o
-    assert not np.any((np.abs(cen[:, 0]) < 0.006) & (np.abs(cen[:, 1] + 0.05) < 0.0015) & (cen[:, 2] > 0.07))
+    # (this slot is pinched: its boundary touches itself, so it is no margin loop and the template may
+    # bridge it; the head of test_mesh_subject_loader.py has real openings, kept open with their margins)
     assert sum(len(v) for v in t.regions.values()) == t.n_vertices
     assert s.template_info["coverage"] >= 0.98
     u = type(t).from_json(t.to_json())
