@@ -487,14 +487,12 @@ class MeshSubject:
 
     def _extensions(self, tpl):
         """The template with the extensions beyond the dots (scalp, ears, neck, back of the head; issue 16),
-        cut just below the template's lowest vertex; a skin they cannot be made on keeps the face template
-        (reported)."""
+        cut just below the template's lowest vertex (no cut when the dots reach the skin's lowest edge); a
+        skin they cannot be made on keeps the face template (reported)."""
         from .template_extensions import add_extensions
 
         cut = float(tpl.neutral[:, 1].min()) - 0.002
-        if cut <= float(self.skin_rest[:, 1].min()):
-            self.report.append("extensions: none (the dots reach the skin's lowest edge)")
-            return tpl
+        cut = cut if cut > float(self.skin_rest[:, 1].min()) else float(self.skin_rest[:, 1].min()) - 0.001
         try:
             out = add_extensions(tpl, self.skin_rest, self.skin_faces, neck_cut_y=cut)
         except ValueError as exc:
