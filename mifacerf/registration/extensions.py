@@ -189,3 +189,36 @@ def place_extensions(template, faces, fiducials, registered, extensions, head=No
             out[v] = rigid
         report["extensions"][ext.name] = {"mode": mode, "anchor": ext.anchor, "vertices": int(len(v))}
     return out, report
+
+
+def place_in_expression(template, faces, fiducials, extensions, V, status, head, neutral=None,
+                        head_predicted: bool = False) -> dict:
+    """One registered expression's extensions: ``V`` (T, 3) and ``status`` (T,) updated in place.
+
+    ``template`` (T, 3) the user's neutral template (the extensions' own positions); ``V``/``status`` the
+    expression's registered vertices (fiducials with status 1 drive); ``head`` (4, 4) its head pose
+    (neutral → expression); ``neutral``: the registered neutral (``vertices``, ``status``), None when this
+    *is* the neutral — the driven map is then the fiducials' motion from the user's template positions.
+    Status of the extension vertices: 1 (placed from registered data) unless ``head_predicted`` or fewer
+    than three fiducials are registered (then left where the template has them, 0). Returns the report
+    of :func:`place_extensions` (``mode`` 'template' for that last case)."""
+    fid = np.asarray(fiducials, int)
+    base = np.asarray(template, np.float64).copy()
+    R = np.asarray(V, np.float64)[fid].copy()
+    ok = np.asarray(status)[fid] == 1
+    if neutral is not None:
+        base[fid] = neutral.vertices[fid]
+        ok &= np.asarray(neutral.status)[fid] == 1
+    R[~ok] = np.nan
+    try:
+        P, rep = place_extensions(base, faces, fid, R, extensions, head=head)
+        placed = not head_predicted
+    except ValueError as exc:             # fewer than three registered fiducials
+        P, placed = base, False
+        rep = {"extensions": {e.name: {"mode": "template", "anchor": e.anchor, "vertices": int(len(e.vertices))}
+                              for e in extensions},
+               "fallbacks": [f"{exc}: every extension left where the template has it (predicted)"]}
+    ids = np.unique(np.concatenate([np.asarray(e.vertices, int) for e in extensions]))
+    V[ids] = P[ids]
+    status[ids] = 1 if placed else 0
+    return rep

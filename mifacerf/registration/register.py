@@ -42,7 +42,7 @@ from . import eyes_teeth as ET
 from .contours import curve_residuals, propagate, relax_margin, rings
 from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS, Inpainter, dot_mask, fill_dots
 from .dots import DotFilter, face_mask, peak_near
-from .extensions import check_extensions, extensions_from_template, place_extensions
+from .extensions import check_extensions, extensions_from_template, place_in_expression
 from .hand import HandInputs, Template, read_hand_inputs
 from .overrides import fixed_positions
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances
@@ -437,32 +437,15 @@ class Registrar:
 
     def place_extension_vertices(self, name: str, V: np.ndarray, status: np.ndarray, T_head: np.ndarray,
                                  e: Expr) -> None:
-        """The template's extensions (:mod:`.extensions`) placed in ``V`` (in place) from this expression's
-        registered fiducials and head pose: rigid with the head (or the body), or driven by the nearest
-        fiducials' motion from the neutral with a falloff. Their status is 1 (placed from registered data)
-        unless the head pose itself is predicted. Reported per extension (mode, fallbacks)."""
+        """The template's extensions placed in ``V`` and ``status`` (in place) from this expression's registered
+        fiducials and head pose (:func:`.extensions.place_in_expression`); reported under ``extensions``,
+        fall-backs also flagged."""
         if not self.extensions:
             return
-        base = self.tpl.vertices.copy()       # extensions: where the user put them on the neutral
-        R = V[self.dots].copy()
-        ok = status[self.dots] == 1
-        if name != self.neutral:              # the fiducials' motion from the registered neutral
-            N = self.registered[self.neutral]
-            base[self.dots] = N.vertices[self.dots]
-            ok &= N.status[self.dots] == 1
-        R[~ok] = np.nan
-        try:
-            P, rep = place_extensions(base, self.tpl.triangles, self.dots, R, self.extensions, head=T_head)
-        except ValueError as exc:             # fewer than three registered fiducials
-            P, rep = base, {"extensions": {}, "fallbacks": [f"{exc}: every extension left where the template "
-                                                            "has it (predicted)"]}
-            for ext in self.extensions:
-                rep["extensions"][ext.name] = {"mode": "template", "anchor": ext.anchor, "vertices": len(ext.vertices)}
-        ids = np.flatnonzero(self.is_extension)
-        V[ids] = P[ids]
-        predicted = str(e.report.get("head_pose", {}).get("source", "")).startswith("none") or \
-            any(r["mode"] == "template" for r in rep["extensions"].values())
-        status[ids] = 0 if predicted else 1
+        N = None if name == self.neutral else self.registered[self.neutral]
+        predicted = str(e.report.get("head_pose", {}).get("source", "")).startswith("none")
+        rep = place_in_expression(self.tpl.vertices, self.tpl.triangles, self.dots, self.extensions, V, status,
+                                  T_head, neutral=N, head_predicted=predicted)
         e.report["extensions"] = rep
         e.flags.extend(rep["fallbacks"])
 

@@ -136,3 +136,44 @@ def test_registration_refuses_a_detached_extension_before_any_work(toy_capture, 
     with pytest.raises(RegistrationInputError, match=r"template.json: extension 'cap' is not attached to the face"):
         Registrar(Capture(cap), tmp_path / "reg", hand=hand)
     assert not (tmp_path / "reg").exists()
+
+
+@pytest.mark.slow
+def test_extensions_added_to_a_finished_registration_keep_its_face(toy_registered, tmp_path):
+    import shutil
+
+    from mifacerf.formats.registration import Registration
+    from mifacerf.registration.extend import extend_registration
+    from mifacerf.registration.register import RegistrationInputError
+    from mifacerf.synthetic.template_extensions import boundary_loops
+
+    cap, truth, reg_dir = toy_registered
+    cap2 = tmp_path / "capture"
+    shutil.copytree(cap, cap2, ignore=shutil.ignore_patterns("registration*"))
+    d = json.loads((cap2 / "hand" / "template.json").read_text())
+    n = len(d["vertices"])
+    X = np.array([v["position"] for v in d["vertices"]])
+    outer = max(boundary_loops(d["triangles"]), key=len)       # stitch one vertex beyond a border edge
+    a, b = outer[0], outer[1]
+    mid = 0.5 * (X[a] + X[b])
+    p = mid + 0.6 * (mid - X.mean(0)) / np.linalg.norm(mid - X.mean(0)) * np.linalg.norm(X[a] - X[b])
+    d["vertices"].append({"kind": "extension", "name": "", "position": p.tolist()})
+    d["triangles"].append([b, a, n])
+    d["extensions"] = {"cap": {"vertices": [n], "mode": "rigid", "anchor": "head", "region": "cap"}}
+    (cap2 / "hand" / "template.json").write_text(json.dumps(d))
+    out = extend_registration(cap2, reg_dir, tmp_path / "reg-ext")
+    old, new = Registration(reg_dir), Registration(out)
+    assert new.expression_names == old.expression_names
+    for name in old.expression_names:
+        r0, r1 = old.expression(name), new.expression(name)
+        np.testing.assert_array_equal(r1.vertices[:n], r0.vertices)
+        np.testing.assert_array_equal(r1.status[:n], r0.status)
+        np.testing.assert_allclose(r1.vertices[n], apply(r0.head_pose, p[None])[0], atol=1e-9)
+        assert new.report(name)["extensions"]["extensions"]["cap"]["mode"] == "rigid"
+        for cam in Registration(reg_dir).capture.camera_names:
+            a0, a1 = old.dotfree_patch(name, cam), new.dotfree_patch(name, cam)
+            assert (a0 is None) == (a1 is None)
+    d["vertices"][0]["position"] = (X[0] + 0.001).tolist()      # not the registered template: refused
+    (cap2 / "hand" / "template.json").write_text(json.dumps(d))
+    with pytest.raises(RegistrationInputError, match="are not those of the registered template"):
+        extend_registration(cap2, reg_dir, tmp_path / "reg-ext2")
