@@ -301,7 +301,7 @@ def local_cluster(workers: int):
         def setup(self, worker):
             _worker_setup(self.threads)
 
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
                            silence_logs=logging.ERROR, env={WORKERS_ENV: "1"})
     client = Client(cluster)
     client.register_plugin(Setup(max(1, machine_workers() // workers)))
@@ -336,14 +336,14 @@ def open_executor(workers: int | None = None, cluster: str | None = None, shared
     (default ``MIFACERF_WORKERS``, else :func:`machine_workers`) processes. ``shared``: folders every
     worker must see (checked, as is the mifacerf version). Use it as a context manager (closes the
     client and a local cluster)."""
-    cluster = cluster or os.environ.get(CLUSTER_ENV) or None
-    if workers is None and os.environ.get(WORKERS_ENV, "").strip():
+    if workers is None and cluster is None and os.environ.get(WORKERS_ENV, "").strip():  # an explicit cluster wins
         try:
             workers = int(os.environ[WORKERS_ENV])
         except ValueError:
             raise ClusterError(f"{WORKERS_ENV}={os.environ[WORKERS_ENV]!r} is not a number of workers") from None
         if workers < 1:
             raise ClusterError(f"{WORKERS_ENV}={workers}: at least 1 worker")
+    cluster = cluster or os.environ.get(CLUSTER_ENV) or None
     if workers == 1:
         return Executor()
     if cluster is None:

@@ -70,6 +70,16 @@ def model(synths):
 
 
 @pytest.mark.slow
+def test_build_on_two_workers_writes_the_same_model(synths, model, cluster, tmp_path):
+    from mifacerf.rendering.build import build_model
+
+    root, one, _ = synths
+    two = build_model(one, tmp_path / "model", registration=root / "one" / "truth_registration", progress=False,
+                      executor=cluster).parent
+    assert_same_files(model, two)    # every field's texels and rf, geometry, blend, parts, model.json
+
+
+@pytest.mark.slow
 def test_compress_on_two_workers_writes_the_same_fields(model, cluster, tmp_path):
     import shutil
 

@@ -127,3 +127,15 @@ def _hide(path):
 
     real = _original.setdefault("view", ex._folder_view)
     ex._folder_view = real if path is None else (lambda p: None if p == path else real(p))
+
+
+def test_a_command_names_the_unreachable_scheduler_in_one_line(tmp_path):
+    from click.testing import CliRunner
+
+    from mifacerf.cli import main
+
+    r = CliRunner().invoke(main, ["synth", str(tmp_path / "o"), "--preset", "tiny", "--cluster", "tcp://127.0.0.1:9"])
+    assert r.exit_code == 1, r.output
+    lines = [x for x in r.output.splitlines() if x.strip()]
+    assert lines[0].startswith("mifacerf synth: error: no Dask scheduler answers at tcp://127.0.0.1:9 (waited 10 s")
+    assert "Traceback" not in r.output and not (tmp_path / "o" / "capture").exists()

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..execution import Executor
 from ..formats.capture import Capture
 from ..formats.registration import Registration, RegistrationError
 from ..registration.extensions import check_extensions, extensions_from_template
@@ -89,19 +90,65 @@ def extension_report(reg, names, geometry, t, cam_idx) -> tuple[list, dict, np.n
     return exts, out, keep
 
 
+class FieldContext:
+    """What every field unit of :func:`build_model` shares: the capture and registration folders, the
+    template's triangles. Pickled (sent to a worker) it keeps the folders; a worker opens the registration
+    once and keeps its mesh scene for its next fields (as the loop in one process does)."""
+
+    def __init__(self, capture, registration, triangles: np.ndarray, reg=None, geometry: dict | None = None):
+        self.capture, self.root, self.triangles = str(capture), str(registration), triangles
+        self._reg, self._geometry, self._scene, self._placed = reg, geometry, None, None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_reg": None, "_geometry": None, "_scene": None, "_placed": None}
+
+    def registration(self) -> Registration:
+        if self._reg is None:
+            self._reg, self._geometry = Registration(self.root, capture=Capture(self.capture)), {}
+        return self._reg
+
+    def scene(self, name: str) -> MeshScene:
+        """The mesh scene holding expression ``name``'s registered vertices."""
+        if name not in self._geometry:
+            self._geometry[name] = self.registration().expression(name)
+        if name != self._placed:
+            v = self._geometry[name].vertices
+            self._placed = name
+            if self._scene is None:
+                self._scene = MeshScene(v, self.triangles)
+            self._scene.set_vertices(v)
+        return self._scene
+
+
+def field_unit(context: FieldContext, unit: tuple) -> tuple:
+    """One field ``(expression, camera)``: the texels where the registered template is seen (ray cast per
+    pixel centre) and the field there, checked → (pixels (N, 2), tri (N,), bary (N, 3), depth (N,), rf (N, L, 3))."""
+    name, cam = unit
+    reg = context.registration()
+    hits, _ = context.scene(name).render_hits(cam, spp=1)
+    sel = np.flatnonzero(hits.valid)
+    field = reg.field(name, cam.name)  # (L, H, W, 3)
+    check_field(field, name, cam.name, lambda light: reg.capture.image_path(name, cam.name, light))
+    rows, cols = sel // cam.width, sel % cam.width
+    return np.stack([rows, cols], 1), hits.tri[sel], hits.bary[sel], hits.t[sel], field[:, rows, cols].transpose(1, 0, 2)
+
+
 def build_model(capture: str | Path, out: str | Path, registration: str | Path | None = None,
                 expressions: list[str] | None = None, cameras: list[str] | None = None,
                 overwrite: bool = False, progress: bool = True, culling: bool = True,
-                allow_partial: bool = False) -> Path:
+                allow_partial: bool = False, executor: Executor | None = None) -> Path:
     """Build a model folder ``out`` from ``capture`` (and ``registration``, default CAPTURE/registration);
     ``progress``: a bar over the fields.
+
+    ``executor`` (:mod:`mifacerf.execution`; default: this process) cuts each (expression, camera) field as
+    one unit (:func:`field_unit`: texel map by ray casting, the field's pixels read and checked); this process
+    writes them, in the jobs' order, into the model's transaction.
 
     Without ``expressions``, every expression of the capture must be registered: a registration that
     covers fewer (an interrupted or partial ``register``) is an error unless ``allow_partial``, which
     builds from the registered ones. The model is written as one transaction
     (:class:`mifacerf.formats.model.ModelWriter`): a failure leaves ``out`` as it was."""
     from ..blending import BlendModel
-    from ..progress import bar
 
     cap = Capture(capture)
     reg = Registration(registration or Path(capture) / "registration", capture=cap)
@@ -129,29 +176,15 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
                          [(n, cap.expressions[cap.expression_index(n)].category) for n in names],
                          t["triangles"], template=reg.template, neutral=neutral, overwrite=overwrite)
     with writer:    # a failure discards the new folder and leaves out as it was
-        scene = None
         jobs = [(n, cam) for n in names for cam in cams]
-        it = bar(jobs, progress, desc="build", unit="field")
-        placed = None
-        for name, cam in it:
-            r = geometry[name]
-            if name != placed:
-                placed = name
-                if scene is None:
-                    scene = MeshScene(r.vertices, t["triangles"])
-                scene.set_vertices(r.vertices)
-            hits, _ = scene.render_hits(cam, spp=1)
-            sel = np.flatnonzero(hits.valid)
+        context = FieldContext(capture, reg.root, t["triangles"], reg, geometry)
+        fields = (executor or Executor()).imap(field_unit, jobs, context, desc="build", unit="field", progress=progress)
+        for (name, cam), (pixels, tri, bary, depth, rf) in zip(jobs, fields):   # written here, in the jobs' order
             if exts:    # texels per extension (the report)
-                per = np.bincount(tri_ext[hits.tri[sel]] + 1, minlength=len(exts) + 1)[1:]
+                per = np.bincount(tri_ext[tri] + 1, minlength=len(exts) + 1)[1:]
                 for k, ext in enumerate(exts):
                     ext_report[ext.name]["texels"] += int(per[k])
-            field = reg.field(name, cam.name)  # (L, H, W, 3)
-            check_field(field, name, cam.name, lambda light: reg.capture.image_path(name, cam.name, light))
-            rows, cols = sel // cam.width, sel % cam.width
-            rf = field[:, rows, cols].transpose(1, 0, 2)
-            writer.write_field(name, cam, np.stack([rows, cols], 1), hits.tri[sel], hits.bary[sel], hits.t[sel],
-                               rf)
+            writer.write_field(name, cam, pixels, tri, bary, depth, rf)
         for name in names:
             r = geometry[name]
             writer.add_geometry(r.vertices, r.visible[cam_idx], r.status, r.eye_centres, r.teeth, r.head_pose)

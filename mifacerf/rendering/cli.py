@@ -20,7 +20,8 @@ from .compression import DEFAULT_COMPRESS_METHOD, compressing_methods
               help="Replace an existing model in OUT (only once the new one is complete).")
 @click.option("--allow-partial", is_flag=True,
               help="Build although the registration does not cover every expression of the capture.")
-def build_cmd(capture, out, registration, expressions, no_culling, overwrite, allow_partial):
+@executor_options
+def build_cmd(capture, out, registration, expressions, no_culling, overwrite, allow_partial, workers, cluster):
     """Assemble the relightable morphable model from a registered capture.
 
     The model is written beside OUT and swapped in when complete: a failed or interrupted build leaves
@@ -35,9 +36,13 @@ def build_cmd(capture, out, registration, expressions, no_culling, overwrite, al
     if inside:
         raise click.BadParameter(f"{out} is {'inside ' if Path(out).resolve() != Path(inside).resolve() else ''}"
                                  f"the input folder {inside}: the model goes in a folder of its own", param_hint="-o")
+    from ..execution import open_executor
+
     try:
-        path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
-                           overwrite=overwrite, culling=not no_culling, allow_partial=allow_partial)
+        with open_executor(workers, cluster, shared=[capture, registration]) as executor:   # a unit per field
+            path = build_model(capture, out, registration, expressions.split(",") if expressions else None,
+                               overwrite=overwrite, culling=not no_culling, allow_partial=allow_partial,
+                               executor=executor)
     except (CaptureError, RegistrationError, ModelError, ValueError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"model written: {path.parent}")
