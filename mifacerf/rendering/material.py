@@ -43,6 +43,111 @@ from .views import ViewSampler
 DEPTH_TOLERANCE = 0.004
 
 
+class LightSampling:
+    """Light directions drawn in proportion to a hit's response to each light-stage light (``facerf_bsdf``'s
+    ``sampling="reflectance"``).
+
+    The sphere is cut into a ``grid_height`` x 2 ``grid_height`` lat-long grid; each grid cell belongs to the
+    light nearest to its centre (the light's region, area ``A_l``, close to its Voronoi cell). Per target
+    vertex ``v`` a table gives the probability ``P_v(l) ∝ r_v(l) A_l`` of light ``l``, with ``r_v(l)`` the
+    mean luminance of the blended fields' texels round ``v`` (weighted by barycentrics, over cameras) — the
+    material's value is constant over a light's Voronoi cell, so this is the value × the cell's area. A
+    direction is drawn for a hit by taking its nearest vertex's table: a light by inverting ``P_v`` (a
+    binary search), a grid cell of that light's region in proportion to its solid angle, a point uniform in
+    solid angle in that cell. Density (solid angle): ``P_v(l(ω)) / A_{l(ω)}`` with ``l(ω)`` the owner of
+    ω's grid cell. A vertex whose fields are all dark draws by area (uniform on the sphere)."""
+
+    def __init__(self, directions: np.ndarray, grid_height: int = 64):
+        from ..environment import latlong_grid
+
+        mi = ensure_variant()
+        self.mi = mi
+        D = np.asarray(directions, np.float64)
+        self.L = len(D)
+        self.H, self.W = grid_height, 2 * grid_height
+        dirs, solid = latlong_grid(self.H)
+        owner = np.argmax(dirs.reshape(-1, 3) @ D.T, axis=1)
+        solid = solid.reshape(-1)
+        self.area = np.bincount(owner, weights=solid, minlength=self.L)
+        order = np.argsort(owner, kind="stable")
+        counts = np.bincount(owner, minlength=self.L)
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        cdf = np.zeros(len(order))
+        for l in range(self.L):
+            sl = slice(start[l], start[l] + counts[l])
+            c = np.cumsum(solid[order[sl]])
+            cdf[sl] = c / max(c[-1], 1e-300) if counts[l] else c
+        self.max_count = int(max(counts.max(), 1))
+        self.owner = to_jit(mi.UInt32, owner.astype(np.uint32))
+        self.area_dev = to_jit(mi.Float, np.maximum(self.area, 1e-12))
+        self.cell_of = to_jit(mi.UInt32, order.astype(np.uint32))
+        self.cell_cdf = to_jit(mi.Float, cdf)
+        self.start = to_jit(mi.UInt32, start.astype(np.uint32))
+        self.count = to_jit(mi.UInt32, counts.astype(np.uint32))
+        self.has_area = self.area > 0
+
+    def set_table(self, response: np.ndarray) -> None:
+        """Per-vertex response (T, L) ≥ 0 → the per-vertex light probabilities and their CDF (on the device)."""
+        q = np.maximum(np.asarray(response, np.float64), 0.0) * self.area[None]
+        tot = q.sum(1, keepdims=True)
+        dark = tot[:, 0] <= 1e-30
+        q[dark] = self.area[None]
+        q /= q.sum(1, keepdims=True)
+        self.prob = to_jit(self.mi.Float, q.reshape(-1))
+        c = np.cumsum(q, axis=1)
+        c[:, -1] = 1.0
+        self.cdf = to_jit(self.mi.Float, c.reshape(-1))
+
+    def sample(self, v, u, u2, active=True):
+        """World directions (Vector3f) for nearest vertices ``v`` (UInt32), ``u`` (Float) and ``u2`` (Point2f)."""
+        import drjit as dr
+
+        mi = self.mi
+        Float, UInt32 = mi.Float, mi.UInt32
+        L = self.L
+        base = v * L
+        lo, hi = dr.zeros(UInt32, dr.width(u)), dr.full(UInt32, L - 1, dr.width(u))
+        for _ in range(int(np.ceil(np.log2(max(L, 2))))):   # the first light whose CDF exceeds u
+            mid = (lo + hi) >> 1
+            right = dr.gather(Float, self.cdf, base + mid, active) <= u
+            lo = dr.select(right & (lo < hi), mid + 1, lo)
+            hi = dr.select(~right & (lo < hi), mid, hi)
+        light = lo
+        first = dr.gather(UInt32, self.start, light, active)
+        count = dr.gather(UInt32, self.count, light, active)
+        lo, hi = first, first + dr.maximum(count, 1) - 1
+        x = u2.x
+        for _ in range(int(np.ceil(np.log2(max(self.max_count, 2))))):   # a cell of the light's region
+            mid = (lo + hi) >> 1
+            right = dr.gather(Float, self.cell_cdf, mid, active) <= x
+            lo = dr.select(right & (lo < hi), mid + 1, lo)
+            hi = dr.select(~right & (lo < hi), mid, hi)
+        c_hi = dr.gather(Float, self.cell_cdf, lo, active)
+        c_lo = dr.select(lo > first, dr.gather(Float, self.cell_cdf, lo - 1, active & (lo > first)), 0.0)
+        r = dr.clip((x - c_lo) / dr.maximum(c_hi - c_lo, 1e-12), 0.0, 1.0)
+        cell = dr.gather(UInt32, self.cell_of, lo, active)
+        row, col = cell // self.W, cell % self.W
+        phi = (Float(col) + r) * (2 * np.pi / self.W)
+        cos0, cos1 = dr.cos(Float(row) * (np.pi / self.H)), dr.cos(Float(row + 1) * (np.pi / self.H))
+        cos_t = cos0 + u2.y * (cos1 - cos0)
+        sin_t = dr.safe_sqrt(1 - cos_t * cos_t)
+        return mi.Vector3f(sin_t * dr.sin(phi), cos_t, -sin_t * dr.cos(phi))
+
+    def pdf(self, v, d, active=True):
+        """Solid-angle density of :meth:`sample` for nearest vertices ``v`` at unit world directions ``d``."""
+        import drjit as dr
+
+        mi = self.mi
+        u = dr.atan2(d.x, -d.z) * (1.0 / (2 * np.pi))
+        u = u - dr.floor(u)
+        t = dr.safe_acos(d.y) * (1.0 / np.pi)
+        col = dr.minimum(mi.UInt32(u * self.W), self.W - 1)
+        row = dr.minimum(mi.UInt32(t * self.H), self.H - 1)
+        light = dr.gather(mi.UInt32, self.owner, row * self.W + col, active)
+        p = dr.gather(mi.Float, self.prob, v * self.L + light, active)
+        return p / dr.gather(mi.Float, self.area_dev, light, active)
+
+
 class MaterialState:
     """Device arrays for evaluating the image-based material of one target (see module docstring).
 
@@ -61,6 +166,7 @@ class MaterialState:
         self.C = len(model.cameras)
         self.uploaded: list[int] = []
         self.triangles = to_jit(mi.UInt32, model.triangles.reshape(-1))
+        self.n_triangles = len(model.triangles)
         self.sources = to_jit(mi.Float, np.asarray(model.vertices, np.float64).reshape(-1))
         self.visible = to_jit(mi.Float, np.asarray(model.visible, np.float32).reshape(-1))   # (S, C, T)
         self.visible_near = to_jit(mi.Float, np.asarray(model.visible_near, np.float32).reshape(-1))
@@ -83,6 +189,8 @@ class MaterialState:
             from .self_visibility import visibility
 
             self.vis_light = to_jit(mi.Float, visibility(model).reshape(-1))
+        self._lum: dict[int, np.ndarray] = {}
+        self.sampling = LightSampling(model.light_directions)
         self.update(target, weights)
 
     def update(self, target: np.ndarray, weights: np.ndarray) -> None:
@@ -114,6 +222,13 @@ class MaterialState:
         self.slot_R = to_jit(mi.Float, rot.reshape(-1))
         if not set(used) <= set(self.uploaded):
             self._upload(sorted(set(self.uploaded) | set(used)))
+        table = np.zeros((T, self.n_lights))
+        for k in range(self.K):   # the slots' response per light, blended by the slots' weights
+            for s in used:
+                sel = (order[:, k] == s) & (sw[:, k] > 0)
+                if s in self._lum:
+                    table[sel] += sw[sel, k, None] * self._lum[s][sel]
+        self.sampling.set_table(table)
 
     def _upload(self, sources: list[int]) -> None:
         """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images."""
@@ -129,6 +244,11 @@ class MaterialState:
                     f = model.field(s, c)
                     idx[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f)) + row_off
                     rf_parts.append(self._rows(f, s, c))
+                    if s not in self._lum:
+                        self._lum[s] = np.zeros((model.n_vertices, model.n_lights))
+                    lum = np.asarray(rf_parts[-1], np.float32).mean(axis=2)        # (N, L)
+                    for kk in range(3):   # each texel's response to its triangle's vertices, by barycentrics
+                        np.add.at(self._lum[s], model.triangles[f.tri, kk], f.bary[:, kk, None] * lum)
                     depth_parts.append(np.asarray(f.depth, np.float32))
                     row_off += len(f)
                 index_parts.append(idx)
@@ -167,6 +287,7 @@ class MaterialState:
         mi = self.mi
         Float, UInt32, Int32 = mi.Float, mi.UInt32, mi.Int32
         active = mi.Bool(active)
+        active &= mi.UInt32(tri) < self.n_triangles
         tri = dr.select(active, mi.UInt32(tri), 0)   # a part's triangle (index past the skin's) is never read
         b = barycentric(self.triangles, self.target, tri, p)
         vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
@@ -265,3 +386,14 @@ class MaterialState:
         pick = [dr.select(primary, acc[q], dr.select(fallback, acc[4 + q], acc[8 + q])) for q in range(4)]
         inv = dr.select(pick[3] > 1e-9, dr.rcp(pick[3]), 0.0)
         return mi.Color3f(pick[0] * inv, pick[1] * inv, pick[2] * inv)
+
+    def nearest_vertex(self, tri, p, active=True):
+        """The target vertex (UInt32) nearest to each hit (the largest barycentric of its triangle)."""
+        import drjit as dr
+
+        mi = self.mi
+        active = mi.Bool(active) & (mi.UInt32(tri) < self.n_triangles)   # a part's triangle: none of the skin's
+        tri = dr.select(active, mi.UInt32(tri), 0)
+        b = barycentric(self.triangles, self.target, tri, p)
+        k = dr.select((b[0] >= b[1]) & (b[0] >= b[2]), 0, dr.select(b[1] >= b[2], 1, 2))
+        return dr.gather(mi.UInt32, self.triangles, tri * 3 + mi.UInt32(k), active)

@@ -90,7 +90,8 @@ def _write_wrong(tmp_path):
     return p
 
 
-def test_bsdf_sample_pdf_consistent_chi2(toy_model, mi):
+@pytest.mark.parametrize("sampling", ["reflectance", "cosine"])
+def test_bsdf_sample_pdf_consistent_chi2(toy_model, mi, sampling):
     """Mitsuba's own chi-square harness: facerf_bsdf's sample() follows its pdf().
 
     Mitsuba's BSDFAdapter uses an all-zero surface interaction and discards samples whose
@@ -100,7 +101,8 @@ def test_bsdf_sample_pdf_consistent_chi2(toy_model, mi):
     import drjit as dr
     from mitsuba.chi2 import ChiSquareTest, SphericalDomain
 
-    bsdf = mi.load_dict({"type": "facerf_bsdf", "model": str(toy_model), "expression": "stretch"})
+    bsdf = mi.load_dict({"type": "facerf_bsdf", "model": str(toy_model), "expression": "stretch",
+                         "sampling": sampling})
     from mifacerf.rendering.model import Model
     from mifacerf.rendering.scenefile import write_target_mesh
     import tempfile

@@ -30,6 +30,33 @@ def test_a_convex_mesh_shadows_exactly_the_lights_behind_its_tangent_plane(mi):
     assert (vis[cos > 0.15] == 1).all() and (vis[cos < -0.15] == 0).all()
 
 
+def test_cell_visibility_is_the_unblocked_share_of_each_lights_cell(mi):
+    """On a sphere the unblocked share of a light's Voronoi cell is the share of the cell's directions in front
+    of the vertex's tangent plane: 1 for a cell wholly in front, 0 wholly behind, in between for grazing."""
+    from mifacerf.rendering.self_visibility import cell_directions, cell_visibility
+
+    V, F = _sphere()
+    rng = np.random.default_rng(1)
+    D = rng.normal(size=(20, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    from mifacerf.rendering.self_visibility import trace
+
+    vis = cell_visibility(V, F, D, n=2048)
+    samples, cell = cell_directions(D, 2048)
+    assert vis.shape == (len(V), len(D)) and ((vis >= 0) & (vis <= 1)).all()
+    free = trace(V, F, samples)
+    np.testing.assert_allclose(vis, np.stack([free[:, cell == l].mean(1) for l in range(len(D))], 1), atol=1e-6)
+    cos = V @ samples.T                                            # (T, n): in front of the tangent plane > 0
+    ahead = np.stack([(cos[:, cell == l] > 0.2).all(1) for l in range(len(D))], 1)
+    behind = np.stack([(cos[:, cell == l] < -0.2).all(1) for l in range(len(D))], 1)
+    assert ahead.any() and behind.any()
+    assert (vis[ahead] == 1).all() and (vis[behind] == 0).all()
+    grazing = ~ahead & ~behind
+    front = np.stack([(cos[:, cell == l] > 0).mean(1) for l in range(len(D))], 1)
+    assert ((vis[grazing] > 0) & (vis[grazing] < 1)).mean() > 0.5   # grazing cells are partly seen ...
+    assert np.corrcoef(vis[grazing], front[grazing])[0, 1] > 0.9    # ... as much as they lie in front
+
+
 def test_material_self_visibility_is_a_parameter(toy_model, mi):
     """facerf_bsdf's self_visibility (default on) reaches the material; off keeps the captured field as is."""
     from mifacerf.variant import ensure_plugins
