@@ -117,6 +117,21 @@ def match_truth(tpl, truth_neutral: np.ndarray, truth_dots: np.ndarray, tol: flo
     return best
 
 
+def proposed_coarse_truth(ptpl, match: dict, user_tpl, user_coarse: dict, T: np.ndarray) -> dict:
+    """{proposed coarse id: reference position or None} for one expression: a dot's matched true fiducial
+    (T: the truth's template vertices), a mouth corner's the user's clicked corner on the same side."""
+    out = {}
+    corners = {np.sign(user_tpl.vertices[int(k), 0]): item.get("position") for k, item in user_coarse.items()
+               if user_tpl.kinds[int(k)] == "lip_corner"}
+    for v in ptpl.coarse:
+        v = int(v)
+        if ptpl.kinds[v] == "lip_corner":
+            out[str(v)] = corners.get(np.sign(ptpl.vertices[v, 0]))
+        else:
+            out[str(v)] = T[match[v]] if v in match else None
+    return out
+
+
 def evaluate_proposed_template(cap_dir: Path, truth: Path, truth_dots: np.ndarray) -> tuple[dict, dict]:
     """Per expression, the registration into a proposed template against the truth: registered of the
     truth's fiducials, median / p95 error (px) of the registered matched dots, share > 3 px off; and the
@@ -306,10 +321,14 @@ def main(argv=None) -> int:
         user_tpl = Template.from_dict(json.loads((hand_cap / "hand" / "template.json").read_text()))
         ev_prop, match = evaluate_proposed_template(prop_cap, truth, user_tpl.dot_ids)
         ptpl = s.template()
-        coarse_truth = {}
-        for name in order:
-            T = np.load(truth / "expressions" / f"{name}.npz")["template_vertices"]
-            coarse_truth[name] = {str(int(v)): (T[match[int(v)]] if int(v) in match else None) for v in ptpl.coarse}
+        n_true = len(user_tpl.dot_ids)
+        tedits = {"dots_proposed": int(len(ptpl.dot_ids)), "matched": len(match),
+                  "phantoms_to_delete": int(len(ptpl.dot_ids) - len(match)),
+                  "fiducials_to_add": int(n_true - len(match))}
+        print(f"template edits to reach the user's fiducials: {json.dumps(tedits)}", flush=True)
+        coarse_truth = {name: proposed_coarse_truth(ptpl, match, user_tpl, user.hand_state(name)["coarse"],
+                                                    np.load(truth / "expressions" / f"{name}.npz")["template_vertices"])
+                        for name in order}
     else:
         ev_prop = evaluate(prop_cap, truth)["per_expression"]
     for name in order:

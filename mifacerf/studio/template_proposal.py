@@ -160,9 +160,11 @@ def surface_triangles(P: np.ndarray, max_edge_factor: float = 2.5, max_edge: flo
     tri = Delaunay(_flat(P, c)).simplices
     L = np.max([np.linalg.norm(P[tri[:, k]] - P[tri[:, (k + 1) % 3]], axis=1) for k in range(3)], axis=0)
     tri = tri[L < (max_edge if max_edge is not None else max_edge_factor * np.median(L))]
-    # counter-clockwise seen from outside (+Z is towards the cameras)
+    # counter-clockwise seen from outside: away from the head's vertical axis (behind the points' centre;
+    # +Z is towards the cameras) — not away from the centre itself, which would turn the neck's triangles in
     n = np.cross(P[tri[:, 1]] - P[tri[:, 0]], P[tri[:, 2]] - P[tri[:, 0]])
-    out = (P[tri].mean(1) - c)
+    out = P[tri].mean(1) - np.array([c[0], 0.0, c[2] - 0.05])
+    out[:, 1] = 0.0
     flip = np.einsum("ij,ij->i", n, out) < 0
     tri[flip] = tri[flip][:, [0, 2, 1]]
     return tri.astype(np.int64)
