@@ -563,14 +563,17 @@ class MeshSubject:
         if len(tf):
             comp = _components(tf, len(R))
             cid = comp[tf[:, 0]]
-            jaw = next((k for k in self.shape_names if "jaw" in k.lower() and "open" in k.lower()), None)
+            tv = np.unique(tf)
+            move = [float(np.linalg.norm(d[tv], axis=1).max()) for d in self.deltas]
+            jaw = self.shape_names[int(np.argmax(move))] if move and max(move) > 1e-3 else None
             lower = np.zeros(len(tf), bool)
-            if jaw is not None:
+            if jaw is not None:             # the shape that moves the teeth most moves the lower ones
                 move = np.linalg.norm(self.deltas[self._index[jaw]], axis=1)
                 for c in np.unique(cid):
                     v = np.unique(tf[cid == c])
                     lower[cid == c] = move[v].mean() > 1e-3
             if jaw is None or lower.all() or not lower.any():
+                jaw = None
                 ymid = np.median(R[np.unique(tf), 1])
                 for c in np.unique(cid):
                     v = np.unique(tf[cid == c])

@@ -83,10 +83,11 @@ def _poisson(points, r, tree=None):
     return np.array(out, np.int64)
 
 
-def sample_dots(V, F, mask, n: int, seed: int = 0, avoid=None, avoid_dist: float = 0.0):
+def sample_dots(V, F, mask, n: int, seed: int = 0, avoid=None, avoid_dist: float = 0.0, keep=None):
     """(tri (n,), bary (n, 3)): ``n`` evenly spaced points on the triangles ``mask``, the border of
     that region first (so the template made over them reaches it), none nearer than ``avoid_dist``
-    to the points ``avoid`` (the margins); fewer is an error."""
+    to the points ``avoid`` (the margins), each passing ``keep(points, triangles) -> (N,) bool`` when
+    given (seen by enough cameras); fewer is an error."""
     import trimesh
 
     from .mesh_subject import MeshSubjectError
@@ -131,6 +132,9 @@ def sample_dots(V, F, mask, n: int, seed: int = 0, avoid=None, avoid_dist: float
 
         far = cKDTree(avoid).query(P_all)[0] >= avoid_dist
         P_all, tri_all, bary_all = P_all[far], tri_all[far], bary_all[far]
+    if keep is not None:
+        ok = keep(P_all, ids[tri_all])
+        P_all, tri_all, bary_all = P_all[ok], tri_all[ok], bary_all[ok]
     r_hi = np.sqrt(2 * m.area / (np.sqrt(3) * n)) * 1.3
     r_lo = 0.2 * r_hi
     best = None
@@ -425,7 +429,8 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     loops = {k: r for k, r in ((k, visible_ring(V, F, lp, vcount >= min_views)) for k, lp in loops.items())
              if len(r) >= 6}
     margin_pts = V[np.concatenate([np.asarray(lp) for lp in loops.values()])] if loops else np.zeros((0, 3))
-    dot_tri, dot_bary = sample_dots(V, F, visible, n_dots, seed, avoid=margin_pts, avoid_dist=0.4 * spacing)
+    dot_tri, dot_bary = sample_dots(V, F, visible, n_dots, seed, avoid=margin_pts, avoid_dist=0.4 * spacing,
+                                    keep=lambda P, t: view_counts(P, fn[t], occluder, cameras) >= min_views)
     dots = np.einsum("nk,nkj->nj", dot_bary, V[F[dot_tri]])
     dot_views = view_counts(dots, fn[dot_tri], occluder, cameras)
     if (dot_views < min_views).any():
