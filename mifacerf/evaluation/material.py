@@ -9,6 +9,8 @@ two independent material renders agree to), over the face's pixels away from its
 coverage); the mean brightness ratio material / exact; seconds per pass.
 
 Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--env sky]``;
+``--hat SYNTH``: the shadow of a hat on the face against the path-traced truth (:func:`hat_shadow`);
+``--emitters``: every kind of emitter against its reference (:func:`emitters`);
 ``--animation [--integrators facerf,direct] [--size 32]``: an animation loop through ``mi.traverse``
 (expression and pose per frame), kernels compiled / launched and seconds per frame (:func:`animation`).
 """
@@ -39,8 +41,6 @@ def compare(model, env: str = "sky", integrators=("direct", "path"), size: int =
             expression: str | None = None, camera=None, exact_basis: str = "voronoi", bsdf=None) -> list[dict]:
     """Rows {integrator, psnr, noise_floor, brightness, seconds} of the material against the exact path
     under the environment ``env`` (a generated name or a lat-long file)."""
-    from scipy.ndimage import binary_erosion
-
     from ..camera import Camera
     from ..environment import GENERATORS, cache_dir, generated
     from ..variant import ensure_plugins
@@ -53,22 +53,13 @@ def compare(model, env: str = "sky", integrators=("direct", "path"), size: int =
     if camera is None:
         camera = Camera.look_at("eval", [0.12, 0.1, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.0)
     exact_scene = _scene(mi, model, {"type": "facerf", "light_basis": exact_basis}, emitter, camera, 16, expression)
-    t0 = time.perf_counter()
-    exact = np.asarray(mi.render(exact_scene))
-    t_exact = time.perf_counter() - t0
-    mask = binary_erosion(exact[..., 3] > 0.999, iterations=1)
-    ref = exact[..., :3]
+    ref, mask, t_exact = _reference(mi, exact_scene)
     rows = [{"integrator": "facerf (exact)", "psnr": None, "noise_floor": None, "brightness": 1.0,
              "seconds": round(t_exact, 2), "spp": 16}]
     for name in integrators:
         integ = {"type": name} if name != "path" else {"type": "path", "max_depth": 3}
-        scene = _scene(mi, model, integ, emitter, camera, spp, expression, bsdf)
-        passes, seconds = [], []
-        for seed in (0, 1):
-            t0 = time.perf_counter()
-            passes.append(np.asarray(mi.render(scene, seed=seed))[..., :3])
-            seconds.append(time.perf_counter() - t0)
-        mean = 0.5 * (passes[0] + passes[1])
+        passes, seconds = _passes(mi, _scene(mi, model, integ, emitter, camera, spp, expression, bsdf), spp)
+        mean = passes.mean(0)
         rows.append({"integrator": name, "psnr": round(psnr(mean, ref, mask), 2),
                      "noise_floor": round(psnr(passes[0], passes[1], mask), 2),
                      "brightness": round(float(mean[mask].mean() / ref[mask].mean()), 4),
@@ -124,6 +115,263 @@ def directional_oracle(model, lights=None, size: int = 48, spp: int = 64, integr
                          "psnr": round(psnr(mat[..., :3], ref, lit), 2),
                          "brightness": round(float(mat[..., :3][lit].mean() / ref[lit].mean()), 4),
                          "lit_pixels": int(lit.sum())})
+    return rows
+
+
+def _reference(mi, scene):
+    """The reference image (H, W, 3), the face's pixels away from its outline (eroded full coverage) and seconds."""
+    from scipy.ndimage import binary_erosion
+
+    t0 = time.perf_counter()
+    exact = np.asarray(mi.render(scene))
+    return exact[..., :3], binary_erosion(exact[..., 3] > 0.999, iterations=1), time.perf_counter() - t0
+
+
+def _passes(mi, scene, spp: int):
+    """Two independent passes of ``scene`` (seeds 0, 1): (pass images (2, H, W, 3), seconds per pass)."""
+    passes, seconds = [], []
+    for seed in (0, 1):
+        t0 = time.perf_counter()
+        passes.append(np.asarray(mi.render(scene, seed=seed))[..., :3])
+        seconds.append(time.perf_counter() - t0)
+    return np.stack(passes), float(np.mean(seconds))
+
+
+def _cell_environment(path, light_direction, directions, height: int = 128) -> None:
+    """A lat-long EXR non-zero only on the stage light's spherical-Voronoi cell, of integral 1 (the exact
+    path's response to unit irradiance from that light)."""
+    from ..environment import latlong_grid
+    from ..imageio import write_exr
+
+    dirs, solid = latlong_grid(height)
+    nearest = np.argmax(dirs.reshape(-1, 3) @ directions.T, axis=1).reshape(height, 2 * height)
+    l = int(np.argmax(directions @ light_direction))
+    cell = nearest == l
+    env = np.zeros((height, 2 * height, 3), np.float32)
+    env[cell] = 1.0 / solid[cell].sum()
+    write_exr(path, env, half=False)
+
+
+def _patch_environment(path, centre, size: float, radiance: float, height: int = 256, sub: int = 4) -> float:
+    """A lat-long EXR of a square area light seen from the origin: ``radiance`` where a ray from the origin meets
+    the ``size`` x ``size`` square at ``centre`` facing the origin (``sub``² rays per texel, so edge texels hold
+    the covered fraction); returns the square's irradiance at the origin along its axis (Σ radiance × solid angle)."""
+    from ..environment import latlong_grid, uv_to_direction
+    from ..imageio import write_exr
+
+    c = np.asarray(centre, np.float64)
+    dist = np.linalg.norm(c)
+    n = -c / dist
+    a = np.cross(n, [0.0, 1.0, 0.0])
+    a = a / np.linalg.norm(a) if np.linalg.norm(a) > 1e-9 else np.array([1.0, 0, 0])
+    b = np.cross(n, a)
+    H, W = height, 2 * height
+    cover = np.zeros((H, W))
+    for dy in range(sub):
+        for dx in range(sub):
+            yy, xx = np.mgrid[0:H, 0:W]
+            uv = np.stack([(xx + (dx + 0.5) / sub) / W, (yy + (dy + 0.5) / sub) / H], -1)
+            d = uv_to_direction(uv)
+            t = (c @ n) / np.minimum(d @ n, -1e-12)          # ray o + t d meets the plane n·x = n·c
+            q = d * t[..., None] - c
+            hit = (t > 0) & (np.abs(q @ a) <= size / 2) & (np.abs(q @ b) <= size / 2)
+            cover += hit
+    cover /= sub * sub
+    env = np.repeat((radiance * cover)[..., None], 3, axis=2).astype(np.float32)
+    write_exr(path, env, half=False)
+    dirs, solid = latlong_grid(height)
+    return float((radiance * cover * solid * np.maximum(-(dirs @ n), 0)).sum())
+
+
+def emitters(model, size: int = 48, spp: int = 64, integrators=("direct", "path"), env: str = "interior",
+             distance: float = 20.0, bsdf=None) -> list[dict]:
+    """The material under every kind of Mitsuba emitter, each against a reference rendered by the exact
+    ``facerf`` path from the same captured fields (neutral expression, the camera of :func:`compare`):
+
+    * ``envmap`` (``env``): the exact path under that environment;
+    * ``directional`` along the stage light most frontal to the camera, irradiance 1: the exact path under an
+      environment that is non-zero only on that light's Voronoi cell, of integral 1 (the closed form: the
+      fields are the response to unit irradiance from that light);
+    * ``point`` and ``spot`` (cutoff 20°) ``distance`` m away along that light, intensity distance²
+      (irradiance 1 at the origin): the same reference (the head's ±0.1 m make the irradiance vary by ±1 %);
+    * ``area``: a 4 m × 4 m ``rectangle`` 10 m away along that light, radiance 1 / (its solid angle × cos):
+      the exact path under the environment that is that square as seen from the origin (a far light: the
+      same directions and radiance), supersampled on a 256-row lat-long map.
+
+    Rows {emitter, integrator, psnr, noise_floor, brightness, seconds, spp} over the face's lit pixels away
+    from its outline (PSNR of the two passes' mean against the reference; noise floor: pass 1 against 2)."""
+    import tempfile
+    from pathlib import Path
+
+    from ..camera import Camera
+    from ..environment import GENERATORS, cache_dir, generated
+    from ..rendering.scene_assets import open_model
+    from ..variant import ensure_plugins
+
+    mi = ensure_plugins()
+    m = open_model(model).model
+    D = m.light_directions
+    eye = np.array([0.12, 0.1, 1.0])
+    camera = Camera.look_at("eval", eye, [0, 0, 0], width=size, height=size, focal=size * 4.0)
+    l = int(np.argmax(D @ (eye / np.linalg.norm(eye))))
+    d = D[l]
+    if env in GENERATORS:
+        generated(env)
+        env = str(cache_dir() / "environments" / f"{env}-128.exr")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        cell = Path(tmp) / "cell.exr"
+        _cell_environment(cell, d, D)
+        side, far = 4.0, 10.0
+        patch = Path(tmp) / "patch.exr"
+        E = _patch_environment(patch, d * far, side, 1.0)
+        dark = {"type": "constant", "radiance": 0.0}
+        to_world = mi.ScalarTransform4f().look_at(origin=(d * far).tolist(), target=[0, 0, 0], up=[0, 1, 0])
+        cases = [
+            ("envmap", {"type": "envmap", "filename": str(env)}, None),
+            ("directional", {"type": "directional", "direction": (-d).tolist(), "irradiance": 1.0}, str(cell)),
+            ("point", {"type": "point", "position": (d * distance).tolist(), "intensity": distance ** 2}, str(cell)),
+            ("spot", {"type": "spot", "cutoff_angle": 20.0, "beam_width": 15.0, "intensity": distance ** 2,
+                      "to_world": mi.ScalarTransform4f().look_at(origin=(d * distance).tolist(), target=[0, 0, 0],
+                                                                 up=[0, 1, 0])}, str(cell)),
+            ("area", {"type": "rectangle", "to_world": to_world @ mi.ScalarTransform4f().scale([side / 2, side / 2, 1]),
+                      "emitter": {"type": "area", "radiance": 1.0 / E}}, str(patch)),
+        ]
+        for name, emitter, reference in cases:
+            if reference is None:
+                ref_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, None)
+            else:
+                ref_scene = _scene(mi, model, {"type": "facerf", "environment": reference}, dark, camera, 16, None)
+            ref, mask, t_ref = _reference(mi, ref_scene)
+            if name == "area":
+                ref = ref / E   # the patch environment's irradiance is E; the area light's 1
+            lit = mask & (ref.sum(-1) > 1e-3 * ref[mask].sum(-1).max())
+            rows.append({"emitter": name, "integrator": "facerf (reference)", "psnr": None, "noise_floor": None,
+                         "brightness": 1.0, "seconds": round(t_ref, 2), "spp": 16})
+            for integ in integrators:
+                spec = {"type": integ} if integ != "path" else {"type": "path", "max_depth": 3}
+                scene = _scene(mi, model, spec, emitter, camera, spp, None, bsdf)
+                passes, seconds = _passes(mi, scene, spp)
+                mean = passes.mean(0)
+                rows.append({"emitter": name, "integrator": integ, "psnr": round(psnr(mean, ref, lit), 2),
+                             "noise_floor": round(psnr(passes[0], passes[1], lit), 2),
+                             "brightness": round(float(mean[lit].mean() / ref[lit].mean()), 4),
+                             "seconds": round(seconds, 2), "spp": f"2 x {spp}"})
+    return rows
+
+
+def format_emitter_rows(rows: list[dict]) -> str:
+    out = ["| emitter | integrator | spp | PSNR vs reference (dB) | noise floor (dB) | mean material / reference "
+           "| s / pass |", "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['emitter']} | {r['integrator']} | {r['spp']} | "
+                   f"{r['psnr'] if r['psnr'] is not None else '—'} | "
+                   f"{r['noise_floor'] if r['noise_floor'] is not None else '—'} | {r['brightness']:.4f} | "
+                   f"{r['seconds']} |")
+    return "\n".join(out)
+
+
+#: the hat of scenes/face_with_objects.xml: a brim 16 cm in radius at y = 0.125 m, a crown and its top
+HAT_COLOUR = [0.25, 0.18, 0.12]
+
+
+def hat_objects(mi) -> dict:
+    """The hat of ``scenes/face_with_objects.xml`` as scene-dict entries (model / capture frame, metres)."""
+    diffuse = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": HAT_COLOUR}}}
+    T = mi.ScalarTransform4f
+    return {"hat_brim": {"type": "disk", "bsdf": diffuse,
+                         "to_world": T().translate([0, 0.125, 0]) @ T().scale(0.16) @ T().rotate([1, 0, 0], -90)},
+            "hat_crown": {"type": "cylinder", "p0": [0, 0.125, 0], "p1": [0, 0.21, 0], "radius": 0.085, "bsdf": diffuse},
+            "hat_top": {"type": "disk", "bsdf": diffuse,
+                        "to_world": T().translate([0, 0.21, 0]) @ T().scale(0.085) @ T().rotate([1, 0, 0], -90)}}
+
+
+def hat_shadow(synth, model, size: int = 96, spp: int = 64, spp_truth: int = 64, sun: float = 3.0,
+               sky: float = 0.2, integrators=("direct", "path")) -> list[dict]:
+    """The shadow a hat casts on the face: the material (``facerf_bsdf`` on the model's neutral expression)
+    against a path-traced ground truth of the synthetic subject (``synth``: a ``mifacerf synth`` output)
+    wearing the same hat (:func:`hat_objects`), under a sun from above and in front (irradiance ``sun``, the
+    direction of ``scenes/face_with_objects.xml``) and the ``sky`` environment scaled by ``sky``.
+
+    Each is rendered with and without the hat; the shadow factor is hat / no hat per pixel (luminance) over
+    the face's skin pixels (the material's skin triangles, the truth's foreground). Rows per integrator:
+    shadow IoU (factor < 0.5 in both against either), the mean factor inside the truth's shadow (material,
+    truth), PSNR of the factor images (peak 1) and of the hat renders (over skin), mean brightness ratio of the
+    hat renders, seconds."""
+    import tempfile
+    from pathlib import Path
+
+    import drjit as dr
+    from scipy.ndimage import binary_erosion
+
+    from ..camera import Camera
+    from ..environment import Environment, resolve
+    from ..imageio import write_exr
+    from ..rendering.sensors import sensor_dict
+    from ..synthetic.truth_scene import TruthRenderer
+    from ..variant import ensure_plugins
+
+    mi = ensure_plugins()
+    camera = Camera.look_at("hat", [0.35, 0.15, 1.3], [0, -0.05, 0.0], width=size, height=size,
+                            focal=(size / 2) / np.tan(np.radians(14.0)))
+    sun_dict = {"type": "directional", "direction": [-0.25, -1.0, -0.45], "irradiance": sun}
+    env = Environment(resolve("sky").data * sky, f"sky-x{sky:g}")
+    tr = TruthRenderer.from_synth(synth)
+    params = tr.expressions[tr.truth.get("neutral", "neutral")] if "neutral" in tr.expressions \
+        else next(iter(tr.expressions.values()))
+    hat = hat_objects(mi)
+    t0 = time.perf_counter()
+    truth = {k: tr.render(params, camera, env, spp=spp_truth, seed=1, objects={"sun": sun_dict, **objs})
+             for k, objs in (("hat", hat), ("bare", {}))}
+    t_truth = time.perf_counter() - t0
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        env_path = Path(tmp) / "sky.exr"
+        write_exr(env_path, env.data.astype(np.float32), half=False)
+        for integ in integrators:
+            spec = {"type": integ} if integ != "path" else {"type": "path", "max_depth": 3}
+            images, seconds = {}, 0.0
+            for k, objs in (("hat", hat), ("bare", {})):
+                scene = mi.load_dict({"type": "scene", "integrator": spec, "sensor": sensor_dict(camera, spp=spp),
+                                      "sky": {"type": "envmap", "filename": str(env_path)}, "sun": sun_dict,
+                                      "face": {"type": "facerf_face", "model": str(model),
+                                               "bsdf": {"type": "facerf_bsdf"}}, **objs})
+                t0 = time.perf_counter()
+                images[k] = np.asarray(mi.render(scene, seed=2))
+                seconds += time.perf_counter() - t0
+            face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
+            W = size
+            idx = dr.arange(mi.UInt32, W * W)
+            ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, mi.Point2f((mi.Float(idx % W) + 0.5) / W,
+                                                                        (mi.Float(idx // W) + 0.5) / W),
+                                                   mi.Point2f(0.5, 0.5))
+            si = scene.ray_intersect(ray)
+            prim = np.asarray(si.prim_index)
+            on_face = np.asarray(si.is_valid()) & (np.asarray(si.shape) == np.asarray(mi.ShapePtr(face)))
+            skin = (on_face & (prim < face.geometry.n_skin_triangles)).reshape(W, W)
+            mask = binary_erosion(skin & (truth["bare"][..., 3] > 0.999) & (images["bare"][..., 3] > 0.999),
+                                  iterations=1)
+            lum = {k: v[..., :3].mean(-1) for k, v in images.items()}
+            tl = {k: v[..., :3].mean(-1) for k, v in truth.items()}
+            ok = mask & (lum["bare"] > 1e-4) & (tl["bare"] > 1e-4)
+            f_mat = np.clip(lum["hat"] / np.maximum(lum["bare"], 1e-6), 0, 2)
+            f_truth = np.clip(tl["hat"] / np.maximum(tl["bare"], 1e-6), 0, 2)
+            sh_mat, sh_truth = ok & (f_mat < 0.5), ok & (f_truth < 0.5)
+            union = (sh_mat | sh_truth).sum()
+            err = ((f_mat - f_truth)[ok] ** 2).mean()
+            ref = truth["hat"][..., :3]
+            rows.append({"integrator": integ, "pixels": int(ok.sum()), "shadow_pixels_truth": int(sh_truth.sum()),
+                         "shadow_pixels_material": int(sh_mat.sum()),
+                         "shadow_iou": round(float((sh_mat & sh_truth).sum() / max(union, 1)), 3),
+                         "factor_in_shadow_material": round(float(f_mat[sh_truth].mean()), 3) if sh_truth.any() else None,
+                         "factor_in_shadow_truth": round(float(f_truth[sh_truth].mean()), 3) if sh_truth.any() else None,
+                         "factor_psnr": round(float(10 * np.log10(1.0 / max(err, 1e-30))), 2),
+                         "psnr_hat": round(psnr(images["hat"][..., :3], ref, ok), 2),
+                         "brightness_hat": round(float(images["hat"][..., :3][ok].mean() / ref[ok].mean()), 4),
+                         "seconds_material": round(seconds, 1), "seconds_truth": round(t_truth, 1),
+                         "spp": spp, "spp_truth": spp_truth})
+            if integ == integrators[0]:
+                hat_shadow.last = {"material": images, "truth": truth, "mask": ok}
     return rows
 
 
@@ -195,7 +443,20 @@ def main(argv=None) -> None:
     ap.add_argument("--directional", action="store_true", help="the closed-form check instead: a directional "
                     "emitter along each of the most frontal light-stage lights (directional_oracle)")
     ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
+    ap.add_argument("--emitters", action="store_true", help="every kind of emitter against its reference "
+                    "instead (envmap, directional, point, spot, area: emitters())")
+    ap.add_argument("--hat", metavar="SYNTH", help="the hat's shadow on the face against the path-traced truth "
+                    "of the synthetic subject of this synth output instead (hat_shadow)")
     a = ap.parse_args(argv)
+    if a.hat:
+        for r in hat_shadow(a.hat, a.model, size=a.size, spp=a.spp, integrators=a.integrators.split(",")):
+            print(r)
+        return
+    if a.emitters:
+        print(format_emitter_rows(emitters(a.model, size=a.size, spp=a.spp, integrators=a.integrators.split(","),
+                                           env=a.env, bsdf={"self_visibility": False} if a.no_self_visibility
+                                           else None)))
+        return
     if a.directional:
         for r in directional_oracle(a.model, size=a.size, spp=a.spp,
                                     bsdf={"self_visibility": False} if a.no_self_visibility else None):

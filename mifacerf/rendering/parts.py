@@ -409,19 +409,12 @@ class PartMaterial:
         if weights is not None:
             by_group = {g: dict(zip(model.expressions, np.asarray(weights)[ids].mean(axis=0)))
                         for g, ids in self.margins.items()}
+        refs = {p: frame_reference(p, model.references, model.part_sources, by_group) for p in parts}
+        placed = {p: (ref, self._reference_transform(ref, p)) for p, ref in refs.items() if ref is not None}
+        chosen = {p: ref for p, (ref, T_ref) in placed.items() if T_ref is not None}
         tab = np.zeros((len(PARTS), 12))
-        chosen = {}
-        for p, T_t in parts.items():
-            ref = frame_reference(p, model.references, model.part_sources, by_group)
-            if ref is None:
-                continue
-            s = model.expression_index(ref)
-            T_ref = part_transforms(model.template, model.eye_centres[s], model.teeth[s], model.head_pose[s]).get(p)
-            if T_ref is None:
-                continue
-            A = T_ref @ np.linalg.inv(np.asarray(T_t, np.float64))
-            tab[PARTS.index(p)] = A[:3, :4].reshape(-1)
-            chosen[p] = ref
+        for p in chosen:   # the target's part point → the reference's: T_ref · T_target⁻¹
+            tab[PARTS.index(p)] = (placed[p][1] @ np.linalg.inv(np.asarray(parts[p], np.float64)))[:3, :4].reshape(-1)
         mi = self.mi
         self.table = to_jit(mi.Float, tab.reshape(-1))
         key = tuple(sorted(chosen.items()))
@@ -429,6 +422,11 @@ class PartMaterial:
             self._upload(chosen)
             self.uploaded_key = key
         self.chosen = chosen
+
+    def _reference_transform(self, ref: str, part: str):
+        """Rest → world 4x4 of ``part`` in expression ``ref`` (None: the part is absent there)."""
+        m, s = self.model, self.model.expression_index(ref)
+        return part_transforms(m.template, m.eye_centres[s], m.teeth[s], m.head_pose[s]).get(part)
 
     def _upload(self, chosen: dict) -> None:
         """The part texels of each part's reference, every camera, on the device."""

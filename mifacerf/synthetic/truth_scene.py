@@ -78,18 +78,21 @@ class TruthRenderer:
         return cam if size is None else cam.resized(size, size)
 
     # ----------------------------------------------------------------- render
-    def scene(self, env: Environment):
+    def scene(self, env: Environment, objects: dict | None = None):
+        """The subject's scene under ``env``; ``objects`` {name: Mitsuba dict}: extra shapes and emitters in it
+        (a hat, a sun), one scene per distinct set."""
         from . import SubjectScene
 
-        if env.name not in self._scenes:
-            self._scenes[env.name] = SubjectScene(self.subject, extra={"env": env.mitsuba_dict()})
-        return self._scenes[env.name]
+        key = env.name if not objects else (env.name, repr(sorted((k, repr(v)) for k, v in objects.items())))
+        if key not in self._scenes:
+            self._scenes[key] = SubjectScene(self.subject, extra={"env": env.mitsuba_dict(), **(objects or {})})
+        return self._scenes[key]
 
     def render(self, params: np.ndarray, camera: Camera, env: str | Environment = "sky", spp: int = 256,
-               seed: int = 0) -> np.ndarray:
-        """(H, W, 4) RGBA path-traced ground truth."""
+               seed: int = 0, objects: dict | None = None) -> np.ndarray:
+        """(H, W, 4) RGBA path-traced ground truth (``objects``: extra shapes and emitters, :meth:`scene`)."""
         env = resolve(env) if isinstance(env, str) else env
-        sc = self.scene(env)
+        sc = self.scene(env, objects)
         sc.set_pose(self.subject.pose(np.asarray(params, np.float64)))
         return render_truth(sc.scene, camera, spp=spp, seed=seed)
 
