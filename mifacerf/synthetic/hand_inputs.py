@@ -409,8 +409,7 @@ def rewrite_template(cap_dir, subject, rig: Rig, seed: int = 0, click_sigma: flo
             new[key] = old[key]
     if ext_new.any():
         pose = subject.pose(default_params(), textures=False)
-        truth = _truth_expression(subject, Expression("neutral", "neutral", default_params()), pose,
-                                  (new.get("teeth") or {}).get("lower"))
+        truth = _truth_expression(subject, Expression("neutral", "neutral", default_params()), pose, None)
         X = truth.template_vertices[ext_new]
         placed = _place(rig, X, _visibility(rig, truth, X), np.random.default_rng(seed + 8112), click_sigma)
         for v, p in zip(np.asarray(new["vertices"], object)[ext_new], placed):

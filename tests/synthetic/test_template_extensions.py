@@ -59,3 +59,31 @@ def test_face_covered_and_a_cut_above_the_face_refused(subj):
     assert cov[t.dot_ids].mean() > 0.9                    # the face's own points are inside it
     with pytest.raises(ValueError, match="neck cut at y = -0.100 m is above the face template's lowest vertex"):
         extension_mesh(subj.neutral_skin, subj.skin_faces, t.neutral, t.triangles, t.holes, neck_cut_y=-0.1)
+
+
+def test_rewrite_template_keeps_the_face_as_placed_and_places_the_extensions(subj, tmp_path):
+    from mifacerf.rig import LightStage, Rig, camera_ring
+    from mifacerf.synthetic.hand_inputs import _user_template, rewrite_template
+
+    cams = camera_ring([(-39, 8), (0, 8), (39, 8), (-39, -11), (0, -11), (39, -11)], width=96, height=96)
+    rig = Rig(LightStage.semicircular_arm(4, 3), cams)
+    face_only = build_template(subj, extensions=False)
+    old = json.loads(face_only.to_json())
+    rng = np.random.default_rng(1)
+    for v in old["vertices"]:                      # as a user placed them: off the truth
+        v["position"] = (np.asarray(v["position"]) + rng.normal(0, 5e-4, 3)).tolist()
+    (tmp_path / "hand").mkdir()
+    (tmp_path / "hand" / "template.json").write_text(json.dumps(old))
+    path = rewrite_template(tmp_path, subj, rig)
+    new = json.loads(path.read_text())
+    n = len(old["vertices"])
+    assert [v["position"] for v in new["vertices"][:n]] == [v["position"] for v in old["vertices"]]
+    assert new["triangles"][:len(old["triangles"])] == old["triangles"] and set(new["extensions"]) == set(subj.template.extensions)
+    P = np.array([v["position"] for v in new["vertices"][n:]])
+    d = np.linalg.norm(P - subj.template.neutral[n:], axis=1)
+    assert np.median(d) < 0.008 and d.max() < 0.05     # clicked on the truth, ~1 px noise at 96 px (3.5 mm)
+    assert new["dot_radius"] == _user_template(subj)["dot_radius"]
+    with pytest.raises(ValueError, match="face vertices are not the subject template's"):
+        old["vertices"][0]["kind"] = "ear"
+        (tmp_path / "hand" / "template.json").write_text(json.dumps(old))
+        rewrite_template(tmp_path, subj, rig)
