@@ -11,16 +11,11 @@ EXPRESSIONS = ["neutral", "viseme_aa"]
 
 @pytest.fixture(scope="module")
 def bench_root(tmp_path_factory):
-    from mifacerf.registration import register_capture
-    from mifacerf.rendering.build import build_model
+    from helpers.tiny_model import build_tiny_model
     from mifacerf.rendering.compression import compress_model
     from mifacerf.rendering.model import Model
-    from mifacerf.synthetic.synth import synthesize
 
-    root = tmp_path_factory.mktemp("bench")
-    cap = synthesize(root / "synth", preset="tiny", expressions=EXPRESSIONS, progress=False)
-    register_capture(cap, progress=False)
-    build_model(cap, root / "model")
+    root = build_tiny_model(tmp_path_factory.mktemp("bench"), EXPRESSIONS)
     compress_model(Model(root / "model"), 2, progress=False, method="sh")
     compress_model(Model(root / "model"), 4, progress=False, method="pca")
     return root
