@@ -103,6 +103,7 @@ def _wait(d, js, timeout=60.0, what=""):
 
 
 def _open(d, served, expression=None):
+    d.get_log("browser")                  # what earlier tests left (a refused save logs as an error)
     d.get(served.url + (f"&expression={expression}" if expression else ""))
     _wait(d, "return window.studio && studio.state && studio.info && !studio.loading && "
              "Object.keys(studio.images).length === studio.info.cameras.length", what="the page to load")
@@ -344,6 +345,10 @@ def test_two_tabs_the_second_is_told(browser, served):
     assert "lower_teeth" in rot["points"]
 
 
+def _cross2(a, b):
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
 def _far_apart(uv: np.ndarray, ids) -> int:
     """The id among ``ids`` whose projection is farthest from every other's (the pointer takes that one)."""
     ids = list(ids)
@@ -392,13 +397,13 @@ def test_editing_the_template_on_the_neutral(browser, served):
     uv = np.asarray(d.execute_script("return studio.tpl.uv.cam1"))
     F = np.asarray(doc["triangles"])
     cen = uv[F].mean(1)
-    area = np.abs(np.cross(uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]])) / 2
+    area = np.abs(_cross2(uv[F[:, 1]] - uv[F[:, 0]], uv[F[:, 2]] - uv[F[:, 0]])) / 2
 
     def covering(p):          # how many triangles' projections hold the point (the page takes the smallest)
         a, b, c = uv[F[:, 0]], uv[F[:, 1]], uv[F[:, 2]]
-        s1 = np.cross(b - a, p - a)
-        s2 = np.cross(c - b, p - b)
-        s3 = np.cross(a - c, p - c)
+        s1 = _cross2(b - a, p - a)
+        s2 = _cross2(c - b, p - b)
+        s3 = _cross2(a - c, p - c)
         return int((((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))).sum())
     big = [k for k in np.argsort(area)[::-1] if 25 < cen[k][0] < 100 and 25 < cen[k][1] < 100
            and covering(cen[k]) == 1][:2]
