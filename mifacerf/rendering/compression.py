@@ -70,8 +70,16 @@ def compress_field_ranks(rf: np.ndarray, ranks) -> dict:
     return out
 
 
-def reconstruct(comp: dict) -> np.ndarray:
-    """(N, L, 3) reflectance functions back from a compressed field."""
+def reconstruct(comp: dict, light_directions: np.ndarray | None = None) -> np.ndarray:
+    """(N, L, 3) reflectance functions back from a compressed field: ``pca``'s arrays, or ``sh``'s
+    coefficients given the model's ``light_directions`` (L, 3) (each light's cell average,
+    :func:`.sh_fields.reconstruct_sh`)."""
+    if "basis" not in comp:
+        from .sh_fields import reconstruct_sh
+
+        if light_directions is None:
+            raise ValueError("an sh field is reconstructed per light: give the model's light directions")
+        return reconstruct_sh(comp["coeff"], light_directions)
     c = np.asarray(comp["coeff"], np.float32)
     B = comp["basis"].reshape(len(comp["basis"]), -1)
     return (comp["mean"].reshape(1, -1) + c @ B).reshape(len(c), *comp["mean"].shape)

@@ -72,6 +72,16 @@ def compress_sh(rf: np.ndarray, orders, directions: np.ndarray) -> dict:
     return {o: {"coeff": coeff[:, :n_coefficients(o)].astype(np.float16)} for o in orders}
 
 
+def reconstruct_sh(coeff: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N, L, 3) reflectance functions back from SH coefficients (N, J, 3): each light's cell average of the
+    expansion, ``F_l = Σ_j a_j M[l, j] / Ω_l`` (Ω_l = the cell's solid angle)."""
+    coeff = np.asarray(coeff, np.float32)
+    order = int(round(np.sqrt(coeff.shape[1]))) - 1
+    M = cell_integrals(directions, order)
+    omega = M[:, 0] * np.sqrt(4 * np.pi)            # ∫_cell 1 = √(4π) ∫_cell Y_00
+    return (coeff.transpose(0, 2, 1) @ (M / omega[:, None]).T.astype(np.float32)).transpose(0, 2, 1)
+
+
 def environment_coefficients(env, order: int, n_theta: int = N_THETA) -> np.ndarray:
     """``e`` (J, 3): the environment's SH coefficients ∫ E(ω) Y_j(ω) dω (world directions)."""
     qd, qw = sphere_quadrature(n_theta)

@@ -79,6 +79,12 @@ def test_cell_integrals_and_environment_coefficients_integrate_the_sphere():
     assert a[1]["coeff"].shape == (3, 4, 3) and a[3]["coeff"].shape == (3, 16, 3)
     lit = np.einsum("njc,jc->nc", a[3]["coeff"].astype(np.float64), rotate_coefficients(e, np.eye(3)[None], 3)[0])
     np.testing.assert_allclose(lit, 0.25 * 2.0 * 4 * np.pi, rtol=2e-3)
+    # back to the lights (each cell's average of the expansion): exact for the constant function
+    from mifacerf.rendering.compression import reconstruct
+
+    np.testing.assert_allclose(reconstruct(a[3], dirs), 0.25, atol=1e-4)
+    with pytest.raises(ValueError, match="light directions"):
+        reconstruct(a[3])
 
 
 def test_sh_render_converges_to_exact(tmp_path_factory, mi):
