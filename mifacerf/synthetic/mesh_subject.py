@@ -733,12 +733,14 @@ class MeshSubject:
         for w in (0.5, 0.75, 0.25):
             for k in names:
                 out.append(Expression(f"{k}_{int(w * 100)}", _category(k), self.params(**{k: w})))
-        i = 0
-        while len(out) < n and len(names) > 1:
-            a, b = names[i % len(names)], names[(i * 7 + 3) % len(names)]
-            if a != b:
-                out.append(Expression(f"{a}+{b}_{i}", _category(a), self.params(**{a: 0.6, b: 0.6})))
-            i += 1
+        from itertools import combinations
+
+        for wa, wb in ((0.6, 0.6), (0.3, 0.8), (0.8, 0.3)):    # then pairs (finite: a short list stays short)
+            for a, b in combinations(names, 2):
+                if len(out) >= n + len(names):
+                    break
+                out.append(Expression(f"{a}+{b}_{int(wa * 100)}_{int(wb * 100)}", _category(a),
+                                      self.params(**{a: wa, b: wb})))
         seen, uniq = set(), []
         for e in out:
             if e.name not in seen:
