@@ -34,7 +34,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from ..execution import Executor, worker_cached
+from ..execution import Executor
 
 
 def frames(model, n: int, seed: int, size: int):
@@ -190,29 +190,9 @@ def disk_bytes(model_root: Path, config: str) -> int:
     return total
 
 
-class TruthContext:
-    """What every ground-truth unit of :func:`run` shares (pickled, a worker opens the folders once)."""
-
-    def __init__(self, synth_out, model, env: str, size: int, spp_truth: int, tr=None, face=None):
-        self.synth_out, self.model, self.env, self.size, self.spp_truth = str(synth_out), str(model), env, size, spp_truth
-        self._tr, self._face = tr, face
-
-    def __getstate__(self):
-        return {**self.__dict__, "_tr": None, "_face": None}
-
-    def opened(self):
-        if self._tr is None:
-            from ..rendering.api import load_model
-            from ..synthetic.truth_scene import TruthRenderer
-
-            stamp = os.stat(Path(self.model) / "model.json").st_mtime_ns
-            self._tr, self._face = worker_cached(("bench truth", self.synth_out, self.model, stamp), lambda: (
-                TruthRenderer.from_synth(self.synth_out), load_model(self.model)))
-        return self._tr, self._face
-
-
-def truth_unit(context: TruthContext, unit: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """Ground-truth frame ``(i, frame)`` → (path-traced truth (H, W, 4), its face mask (H, W))."""
+def truth_unit(context, unit: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """Ground-truth frame ``(i, frame)`` → (path-traced truth (H, W, 4), its face mask (H, W)); ``context``: a
+    :class:`.render_cases.CaseContext` with ``env``, ``size`` and ``spp_truth``."""
     from .masks import classify_pixels, face_mask
 
     i, f = unit
@@ -244,6 +224,7 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     from ..synthetic.truth_scene import TruthRenderer
     from .masks import classify_pixels, face_mask
     from .metrics import psnr
+    from .render_cases import CaseContext
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -251,7 +232,8 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     fr = frames(face.model, n_frames, seed, size)
     tr = TruthRenderer.from_synth(synth_out)
     ex = executor or Executor()
-    done = ex.map(truth_unit, list(enumerate(fr)), TruthContext(synth_out, model, env, size, spp_truth, tr, face),
+    context = CaseContext(synth_out, model, tr, face, env=env, size=size, spp_truth=spp_truth)
+    done = ex.map(truth_unit, list(enumerate(fr)), context,
                   desc="ground truth", unit="frame", progress=progress)
     truths, masks = [t for t, _ in done], [m for _, m in done]
     n_str = int(json.loads((Path(synth_out) / "capture" / "manifest.json").read_text())["rig"]["lights"]

@@ -128,7 +128,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
     seeds = [int(rng.integers(1 << 30)) for _ in jobs]   # one per job, drawn in the jobs' order as before
     units = [(case, env, seed_t, pictures is not None and i < 24) for i, ((case, env), seed_t) in
              enumerate(zip(jobs, seeds))]
-    context = CaseContext(out, model_path, spp_truth, spp, size, tr, face)
+    context = CaseContext(out, model_path, tr, face, spp_truth=spp_truth, spp=spp, size=size)
     for entry, case_pictures in (executor or Executor()).imap(run_case, units, context, desc="cases",
                                                               unit="case", progress=progress):
         report["cases"].append(entry)
@@ -155,14 +155,15 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
 
 
 class CaseContext:
-    """What every case unit shares: the synth output, the model, the sample counts, the image size.
+    """What every unit of an evaluation shares: a synth output (its truth) and a model, and the run's settings
+    as attributes (``spp_truth``, ``spp``, ``size``, ...).
 
     Pickled (sent to a worker) it keeps the folders instead of the truth renderer and the model; a worker
-    opens them once (:func:`mifacerf.execution.worker_cached`) for all its cases."""
+    opens them once (:func:`mifacerf.execution.worker_cached`) for all its units."""
 
-    def __init__(self, out, model_path, spp_truth: int, spp: int, size: int | None, tr=None, face=None):
-        self.out, self.model_path = str(out), str(model_path)
-        self.spp_truth, self.spp, self.size, self._tr, self._face = spp_truth, spp, size, tr, face
+    def __init__(self, out, model_path, tr=None, face=None, **settings):
+        self.out, self.model_path, self._tr, self._face = str(out), str(model_path), tr, face
+        self.__dict__.update(settings)
 
     def __getstate__(self):
         return {**self.__dict__, "_tr": None, "_face": None}
@@ -174,7 +175,7 @@ class CaseContext:
             from ..synthetic.truth_scene import TruthRenderer
 
             stamp = os.stat(Path(self.model_path) / "model.json").st_mtime_ns
-            self._tr, self._face = worker_cached(("render cases", self.out, self.model_path, stamp), lambda: (
+            self._tr, self._face = worker_cached(("truth and model", self.out, self.model_path, stamp), lambda: (
                 TruthRenderer.from_synth(self.out), load_model(self.model_path)))
         return self._tr, self._face
 

@@ -152,10 +152,7 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
             pose = poses[e.name] = subject.pose(e.params)
             write_truth_expression(truth_dir, e.name, e.params, pose)
             for cam in rig.cameras:
-                paths = [writer.image_path(e.name, cam.name, l) for l in range(len(lights))]
-                if all(p.exists() for p in paths):  # resumed run: this take is already on disk
-                    for p in paths:
-                        writer.checksums[p.relative_to(writer.root).as_posix()] = sha256_file(p)
+                if _take_on_disk(writer, e.name, cam.name, len(lights)):  # resumed run: already written
                     bar.update(len(lights))
                 else:
                     takes.append((e.name, np.asarray(e.params), cam.name))
@@ -216,10 +213,7 @@ def _synthesize_here(writer, subject, scene, exprs, rig, truth_dir, poses, spp, 
             write_truth_expression(truth_dir, e.name, e.params, pose)
             posed = False
             for cam in rig.cameras:
-                paths = [writer.image_path(e.name, cam.name, l) for l in range(len(lights))]
-                if all(p.exists() for p in paths):  # resumed run: this take is already on disk
-                    for p in paths:
-                        writer.checksums[p.relative_to(writer.root).as_posix()] = sha256_file(p)
+                if _take_on_disk(writer, e.name, cam.name, len(lights)):  # resumed run: already written
                     bar.update(len(lights))
                     continue
                 if not posed:
@@ -232,6 +226,17 @@ def _synthesize_here(writer, subject, scene, exprs, rig, truth_dir, poses, spp, 
                 pending = [pool.submit(_write_all, writer, e.name, cam.name, imgs, bar)]
         for f in pending:
             f.result()
+
+
+def _take_on_disk(writer: CaptureWriter, expression: str, camera: str, n_lights: int) -> bool:
+    """Whether every image of the take is present (every image is written atomically, so a present file is a
+    whole file); if so, their checksums are recorded in ``writer``."""
+    paths = [writer.image_path(expression, camera, l) for l in range(n_lights)]
+    if not all(p.exists() for p in paths):
+        return False
+    for p in paths:
+        writer.checksums[p.relative_to(writer.root).as_posix()] = sha256_file(p)
+    return True
 
 
 def _write_all(writer: CaptureWriter, expression: str, camera: str, images: np.ndarray, bar) -> None:

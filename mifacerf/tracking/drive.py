@@ -85,10 +85,11 @@ class FrameContext:
     """What every frame unit of one environment shares: the model, the environment, the camera, spp.
 
     Pickled (sent to a worker) it keeps the model's folder instead of the loaded model; a worker loads
-    it once (:func:`mifacerf.execution.worker_cached`) for all its frames."""
+    it once (:func:`mifacerf.execution.worker_cached`), with the same field cache size, for all its frames."""
 
     def __init__(self, face, env, camera, spp: int):
         self._face, self.root, self.env, self.camera, self.spp = face, str(face.model.root), env, camera, spp
+        self.cache_bytes = getattr(face.model, "cache_bytes", 4 << 30)
 
     def __getstate__(self):
         return {**self.__dict__, "_face": None}
@@ -98,7 +99,8 @@ class FrameContext:
             from ..rendering.api import load_model
 
             stamp = os.stat(Path(self.root) / "model.json").st_mtime_ns
-            self._face = worker_cached(("model", self.root, stamp), lambda: load_model(self.root))
+            self._face = worker_cached(("model", self.root, stamp, self.cache_bytes),
+                                       lambda: load_model(self.root, self.cache_bytes))
         return self._face
 
 
