@@ -9,6 +9,7 @@ two independent material renders agree to), over the face's pixels away from its
 coverage); the mean brightness ratio material / exact; seconds per pass.
 
 Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--env sky]``;
+``--parts EXPRESSION``: eyes, teeth and mouth under the material, per part (:func:`parts`);
 ``--hat SYNTH``: the shadow of a hat on the face against the path-traced truth (:func:`hat_shadow`);
 ``--emitters``: every kind of emitter against its reference (:func:`emitters`);
 ``--animation [--integrators facerf,direct] [--size 32]``: an animation loop through ``mi.traverse``
@@ -271,6 +272,58 @@ def format_emitter_rows(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def _labels(mi, scene, size: int) -> np.ndarray:
+    """(size, size) per pixel centre: -1 background or another shape, 0 the face's skin, k + 1 part ``PARTS[k]``."""
+    import drjit as dr
+
+    face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
+    idx = dr.arange(mi.UInt32, size * size)
+    uv = mi.Point2f((mi.Float(idx % size) + 0.5) / size, (mi.Float(idx // size) + 0.5) / size)
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    on = np.asarray(si.is_valid()) & (np.asarray(si.shape) == np.asarray(mi.ShapePtr(face)))
+    prim = np.minimum(np.asarray(si.prim_index), len(face.label) - 1)
+    return np.where(on, face.label[prim].astype(np.int64), -1).reshape(size, size), face
+
+
+def parts(model, expression: str, env: str = "interior", size: int = 128, spp: int = 64,
+          integrator: str = "direct") -> list[dict]:
+    """Eyes, teeth and mouth interior under the material against the ``facerf`` integrator (which shades them
+    from their reference expressions with ray-traced visibility and a re-synthesised cornea highlight), per
+    part and for the skin: pixels, PSNR and mean material / exact. The camera looks at the head's centre from
+    half way along the direction of the model's middle capture camera (``size``², focal 2.5 ``size``)."""
+    from ..camera import Camera
+    from ..environment import GENERATORS, cache_dir, generated
+    from ..rendering.parts import PARTS
+    from ..rendering.scene_assets import open_model
+    from ..variant import ensure_plugins
+
+    mi = ensure_plugins()
+    m = open_model(model).model
+    centre = m.vertices[m.expression_index(m.neutral)].mean(0)
+    c0 = m.cameras[len(m.cameras) // 2]
+    camera = Camera.look_at("parts", centre + 0.5 * (c0.centre - centre), centre, width=size, height=size,
+                            focal=2.5 * size)
+    if env in GENERATORS:
+        generated(env)
+        env = str(cache_dir() / "environments" / f"{env}-128.exr")
+    emitter = {"type": "envmap", "filename": str(env)}
+    exact_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, expression)
+    ref, _, t_ref = _reference(mi, exact_scene)
+    passes, seconds = _passes(mi, _scene(mi, model, {"type": integrator}, emitter, camera, spp, expression), spp)
+    mean = passes.mean(0)
+    label, _ = _labels(mi, exact_scene, size)
+    rows = []
+    for k, name in enumerate(("skin",) + PARTS):
+        sel = label == k
+        if sel.sum() < 3:
+            continue
+        rows.append({"part": name, "pixels": int(sel.sum()), "psnr": round(psnr(mean, ref, sel), 2),
+                     "brightness": round(float(mean[sel].mean() / max(ref[sel].mean(), 1e-9)), 4),
+                     "seconds_exact": round(t_ref, 1), "seconds_material": round(seconds, 1), "spp": f"2 x {spp}"})
+    return rows
+
+
 #: the hat of scenes/face_with_objects.xml: a brim 16 cm in radius at y = 0.125 m, a crown and its top
 HAT_COLOUR = [0.25, 0.18, 0.12]
 
@@ -287,7 +340,7 @@ def hat_objects(mi) -> dict:
 
 
 def hat_shadow(synth, model, size: int = 96, spp: int = 64, spp_truth: int = 64, sun: float = 3.0,
-               sky: float = 0.2, integrators=("direct", "path")) -> list[dict]:
+               sky: float = 0.2, integrators=("direct", "path"), pictures=None) -> list[dict]:
     """The shadow a hat casts on the face: the material (``facerf_bsdf`` on the model's neutral expression)
     against a path-traced ground truth of the synthetic subject (``synth``: a ``mifacerf synth`` output)
     wearing the same hat (:func:`hat_objects`), under a sun from above and in front (irradiance ``sun``, the
@@ -297,11 +350,11 @@ def hat_shadow(synth, model, size: int = 96, spp: int = 64, spp_truth: int = 64,
     the face's skin pixels (the material's skin triangles, the truth's foreground). Rows per integrator:
     shadow IoU (factor < 0.5 in both against either), the mean factor inside the truth's shadow (material,
     truth), PSNR of the factor images (peak 1) and of the hat renders (over skin), mean brightness ratio of the
-    hat renders, seconds."""
+    hat renders, seconds. ``pictures``: a PNG path for the first integrator: truth and material with the hat,
+    then the two shadow factors (grey 1, black 0), skin pixels only."""
     import tempfile
     from pathlib import Path
 
-    import drjit as dr
     from scipy.ndimage import binary_erosion
 
     from ..camera import Camera
@@ -339,16 +392,7 @@ def hat_shadow(synth, model, size: int = 96, spp: int = 64, spp_truth: int = 64,
                 t0 = time.perf_counter()
                 images[k] = np.asarray(mi.render(scene, seed=2))
                 seconds += time.perf_counter() - t0
-            face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
-            W = size
-            idx = dr.arange(mi.UInt32, W * W)
-            ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, mi.Point2f((mi.Float(idx % W) + 0.5) / W,
-                                                                        (mi.Float(idx // W) + 0.5) / W),
-                                                   mi.Point2f(0.5, 0.5))
-            si = scene.ray_intersect(ray)
-            prim = np.asarray(si.prim_index)
-            on_face = np.asarray(si.is_valid()) & (np.asarray(si.shape) == np.asarray(mi.ShapePtr(face)))
-            skin = (on_face & (prim < face.geometry.n_skin_triangles)).reshape(W, W)
+            skin = _labels(mi, scene, size)[0] == 0
             mask = binary_erosion(skin & (truth["bare"][..., 3] > 0.999) & (images["bare"][..., 3] > 0.999),
                                   iterations=1)
             lum = {k: v[..., :3].mean(-1) for k, v in images.items()}
@@ -370,8 +414,14 @@ def hat_shadow(synth, model, size: int = 96, spp: int = 64, spp_truth: int = 64,
                          "brightness_hat": round(float(images["hat"][..., :3][ok].mean() / ref[ok].mean()), 4),
                          "seconds_material": round(seconds, 1), "seconds_truth": round(t_truth, 1),
                          "spp": spp, "spp_truth": spp_truth})
-            if integ == integrators[0]:
-                hat_shadow.last = {"material": images, "truth": truth, "mask": ok}
+            if integ == integrators[0] and pictures is not None:
+                from ..imageio import write_png
+
+                peak = max(float(ref[ok].max()) if ok.any() else 1.0, 1e-6)
+                tiles = [np.clip(truth["hat"][..., :3] / peak, 0, 1), np.clip(images["hat"][..., :3] / peak, 0, 1),
+                         np.repeat(np.where(ok, np.clip(f_truth, 0, 1), 0.3)[..., None], 3, 2),
+                         np.repeat(np.where(ok, np.clip(f_mat, 0, 1), 0.3)[..., None], 3, 2)]
+                write_png(pictures, np.concatenate([t ** (1 / 2.2) for t in tiles], axis=1).astype(np.float32))
     return rows
 
 
@@ -447,9 +497,17 @@ def main(argv=None) -> None:
                     "instead (envmap, directional, point, spot, area: emitters())")
     ap.add_argument("--hat", metavar="SYNTH", help="the hat's shadow on the face against the path-traced truth "
                     "of the synthetic subject of this synth output instead (hat_shadow)")
+    ap.add_argument("--parts", metavar="EXPRESSION", help="eyes, teeth and mouth under the material against the "
+                    "facerf integrator instead, per part (parts)")
+    ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
+    if a.parts:
+        for r in parts(a.model, a.parts, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0]):
+            print(r)
+        return
     if a.hat:
-        for r in hat_shadow(a.hat, a.model, size=a.size, spp=a.spp, integrators=a.integrators.split(",")):
+        for r in hat_shadow(a.hat, a.model, size=a.size, spp=a.spp, integrators=a.integrators.split(","),
+                            pictures=a.pictures):
             print(r)
         return
     if a.emitters:
