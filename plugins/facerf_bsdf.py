@@ -6,12 +6,14 @@ viewer's direction (camera weights per hit), so directional, point and environme
 emitters light it through standard integrators (``direct``, ``path``).
 :class:`mifacerf.rendering.material.MaterialState` documents the evaluation.
 
-``eval`` returns radiance per unit irradiance, which is Mitsuba's "BSDF × cosine".
-``sample`` draws the light direction from a mixture of a cosine-weighted hemisphere about
-the shading normal (probability 0.9) and the uniform sphere (0.1, so that light from
-below the coarse template's tangent plane — which the reflectance field may still
-answer — is sampled too); ``pdf`` is that mixture's density, and sample/pdf/eval are
-consistent (tested with Mitsuba's chi-square harness).
+``eval`` returns radiance per unit irradiance, which is Mitsuba's "BSDF × cosine", for hits seen from
+outside the head. ``sample`` draws the light direction from a mixture of a cosine-weighted hemisphere
+about the shading normal (probability 0.9) and the uniform sphere (0.1, so that light from below the
+coarse template's tangent plane — which the reflectance field may still answer — is sampled too); with
+``sampling="reflectance"`` (the default) half the samples come from that mixture and half per
+light-stage light in proportion to the fields' response at the hit's nearest vertex
+(:class:`mifacerf.rendering.material.LightSampling`). ``pdf`` is the density of what ``sample`` draws,
+and sample/pdf/eval are consistent (tested with Mitsuba's chi-square harness).
 
 Standard integrators trace shadow rays, and the face mesh shadows itself although the reflectance
 fields already hold its self-shadowing; ``self_visibility`` (default on) divides the captured
@@ -32,6 +34,8 @@ cornea highlight is not part of this response.
      - string — light-stage rule, a ``LIGHT_BASIS_METHODS`` name (default ``voronoi``, or ``hat``)
    * - self_visibility
      - boolean — divide the captured self-visibility out (:mod:`mifacerf.rendering.self_visibility`; default true)
+   * - sampling
+     - string — ``reflectance`` (default: half the samples by the fields' response per light) or ``cosine``
    * - parts
      - boolean — shade eyes, teeth and mouth interior (default true; false: they are black)
    * - depth_tolerance, max_slots
@@ -60,6 +64,14 @@ SAMPLING = ("reflectance", "cosine")
 
 
 class FaceRFBSDF(mi.BSDF):
+    """The image-based material of a face model (the module docstring is its manual: parameters and rules).
+
+    Example::
+
+        {"type": "facerf_face", "model": "model", "expression": "smile",
+         "bsdf": {"type": "facerf_bsdf", "sampling": "reflectance", "self_visibility": True}}
+    """
+
     def __init__(self, props):
         super().__init__(props)
         from mifacerf.rendering.material import MaterialState
