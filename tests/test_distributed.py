@@ -59,6 +59,39 @@ def test_synth_on_two_workers_writes_the_same_capture(synths):
     assert_same_files(root / "one" / "truth", root / "two" / "truth")
 
 
+@pytest.mark.slow
+def test_synth_survives_a_killed_worker(synths, cluster, tmp_path):
+    """SIGKILL one worker while the takes render and write: its takes run again on the other worker; the capture is
+    byte-identical to the one-process capture and no temporary file is left (nothing half-written)."""
+    import os
+    import signal
+    import threading
+
+    from mifacerf.synthetic.synth import synthesize
+
+    root, one, _ = synths
+    out = tmp_path / "killed"
+    killed = []
+
+    def kill_when_images_appear():
+        for _ in range(1200):
+            if len(list((out / "capture").glob("images/*/*/*.exr"))) >= 30:
+                pid = sorted(cluster.client.run(os.getpid).values())[0]
+                os.kill(pid, signal.SIGKILL)
+                killed.append(pid)
+                return
+            threading.Event().wait(0.1)
+
+    t = threading.Thread(target=kill_when_images_appear, daemon=True)
+    t.start()
+    cap = synthesize(out, preset="tiny", expressions=EXPRESSIONS, progress=False, rig=small_rig(), executor=cluster)
+    t.join(5)
+    assert killed, "no worker was killed (the capture was written before the images appeared?)"
+    assert_same_files(one, cap)
+    assert not [p for p in cap.rglob("*") if ".tmp" in p.name]
+    cluster.client.wait_for_workers(2, timeout=120)
+
+
 @pytest.fixture(scope="module")
 def model(synths):
     from helpers.tracking import write_truth_registration

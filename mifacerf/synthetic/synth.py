@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..formats.capture import CaptureError, CaptureWriter, ExpressionEntry
+from ..formats.capture import IMAGE_PATTERN, CaptureError, CaptureWriter, ExpressionEntry
 from ..formats.files import sha256_file, write_json_atomic
 from ..rig import Rig, RigPreset, preset as get_preset
 from .olat import render_olat
@@ -161,6 +161,7 @@ def synthesize(out: str | os.PathLike, preset: str = "draft", subject_folder=Non
         for sums in executor.imap(synth_take, takes, context):
             writer.checksums.update(sums)
             bar.update(len(lights))
+        _remove_stale_temporaries(writer.root, {(n, c) for n, _, c in takes})
     else:
         _synthesize_here(writer, subject, SubjectScene(subject), exprs, rig, truth_dir, poses, pre.spp, seed, bar)
     bar.close()
@@ -226,6 +227,16 @@ def _synthesize_here(writer, subject, scene, exprs, rig, truth_dir, poses, spp, 
                 pending = [pool.submit(_write_all, writer, e.name, cam.name, imgs, bar)]
         for f in pending:
             f.result()
+
+
+def _remove_stale_temporaries(root: Path, takes) -> None:
+    """Delete what a worker killed while writing left behind: the atomic writers' temporary files
+    (``.<name>.<random>.tmp*``, :mod:`mifacerf.formats.files`) in the takes' image folders. Called once every
+    take is complete, when no writer is left."""
+    for expression, camera in takes:
+        folder = (root / IMAGE_PATTERN.format(expression=expression, camera=camera, light=0)).parent
+        for p in folder.glob(".*.tmp*"):
+            p.unlink(missing_ok=True)
 
 
 def _take_on_disk(writer: CaptureWriter, expression: str, camera: str, n_lights: int) -> bool:
