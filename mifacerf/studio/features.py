@@ -212,17 +212,36 @@ def lift_curve(cams, master: str, uv: np.ndarray, prior_depth: np.ndarray, curve
     return o + d * ((prior_depth + best - oz) / dz)[:, None]
 
 
-def depth_from_points(cam, P: np.ndarray, uv: np.ndarray, k: int = 6) -> np.ndarray:
-    """Camera depth (n,) at pixels ``uv`` (n, 2) interpolated from 3-D points P (N, 3) seen by ``cam``
-    (inverse-distance weights of the ``k`` nearest projections)."""
+def depth_from_points(cam, P: np.ndarray, uv: np.ndarray, k: int = 6, triangles: np.ndarray | None = None) -> np.ndarray:
+    """Camera depth (n,) at pixels ``uv`` (n, 2) on the surface of the 3-D points P (N, 3) seen by ``cam``:
+    interpolated in the nearest triangle of ``triangles`` (F, 3) that covers the pixel, else from the
+    ``k`` nearest projections (inverse-distance weights; sparse points mix the far side of the face in)."""
     from scipy.spatial import cKDTree
 
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
     p, z = cam.project(P)
     ok = np.isfinite(p).all(1) & (z > 0)
     tree = cKDTree(p[ok])
-    dist, idx = tree.query(np.asarray(uv, np.float64), min(k, int(ok.sum())))
+    dist, idx = tree.query(uv, min(k, int(ok.sum())))
     w = 1.0 / np.maximum(dist, 0.5) ** 2
-    return np.sum(w * z[ok][idx], 1) / w.sum(1)
+    out = np.sum(w * z[ok][idx], 1) / w.sum(1)
+    if triangles is None or len(triangles) == 0:
+        return out
+    F = np.asarray(triangles, np.int64)
+    F = F[ok[F].all(1)]
+    a, b, c = p[F[:, 0]], p[F[:, 1]], p[F[:, 2]]
+    den = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    good = np.abs(den) > 1e-9
+    F, a, b, c, den = F[good], a[good], b[good], c[good], den[good]
+    for i, q in enumerate(uv):
+        w1 = ((b[:, 0] - q[0]) * (c[:, 1] - q[1]) - (c[:, 0] - q[0]) * (b[:, 1] - q[1])) / den
+        w2 = ((c[:, 0] - q[0]) * (a[:, 1] - q[1]) - (a[:, 0] - q[0]) * (c[:, 1] - q[1])) / den
+        w3 = 1.0 - w1 - w2
+        hit = (w1 >= 0) & (w2 >= 0) & (w3 >= 0)
+        if hit.any():
+            zz = w1[hit] * z[F[hit, 0]] + w2[hit] * z[F[hit, 1]] + w3[hit] * z[F[hit, 2]]
+            out[i] = float(zz.min())          # the front-most surface along the ray
+    return out
 
 
 def ray_sphere_depth(cam, uv: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -251,11 +270,13 @@ def _facing(cams, names: list, point: np.ndarray, forward: np.ndarray) -> list:
     return sorted(names, key=cos, reverse=True)
 
 
-def find_face(cams, images: dict, P: np.ndarray, n_lip: int = 15, n_lid: int = 8, eye_radius: float = 0.012) -> dict:
+def find_face(cams, images: dict, P: np.ndarray, n_lip: int = 15, n_lid: int = 8, eye_radius: float = 0.012,
+              triangles: np.ndarray | None = None) -> dict:
     """The mouth and eyes of the neutral: {"mouth": {"line" (n_lip, 3), "views", "curves"} | None,
     "eyes": {"L"/"R": {"iris" (3,), "iris_radius", "upper" (n_lid, 3), "lower" (n_lid, 3), "views"}},
     "notes": [...]} from the diffuse proxies ``images`` {camera: (H, W, 3)} and the dots P (N, 3)
-    (the prior surface). Left and right are the subject's (+X is the subject's left)."""
+    (the prior surface, meshed by ``triangles`` when given). Left and right are the subject's (+X is the
+    subject's left)."""
     from ..geometry.triangulate import triangulate
     from ..registration.dots import face_mask
 
@@ -276,7 +297,7 @@ def find_face(cams, images: dict, P: np.ndarray, n_lip: int = 15, n_lid: int = 8
     if lines:
         master = max(lines, key=lambda n: np.ptp(lines[n][:, 0]))
         uv = resample(lines[master], n_lip)
-        depth = depth_from_points(cam_of[master], P, uv)
+        depth = depth_from_points(cam_of[master], P, uv, triangles=triangles)
         X = lift_curve(cams, master, uv, depth, {n: ln for n, ln in lines.items() if n != master})
         if X[0, 0] > X[-1, 0]:
             X = X[::-1]

@@ -302,7 +302,7 @@ def propose_template(session, n_coarse: int = 18, min_peak: float = 0.3) -> dict
         return {"template": None, "summary": summary,
                 "note": f"only {len(P)} dots matched across views: no template proposed (is the neutral lit, "
                         "are the dots yellow?)"}
-    face = find_face(session.cams, images, P)
+    face = find_face(session.cams, images, P, triangles=surface_triangles(P))
     notes = list(face["notes"])
     frame = _face_frame(face["eyes"], P)
     verts = [{"kind": "dot", "name": f"dot{i}", "position": p} for i, p in enumerate(P)]
