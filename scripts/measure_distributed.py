@@ -63,7 +63,8 @@ def run_stage(name, workers, fn, out: Path, record):
     start = time.perf_counter() - t0
     try:
         t0 = time.perf_counter()
-        fn(ex, out / f"{name}-w{workers}-cold")    # cold: workers import, load models, build scenes, compile
+        if name != "paper_take":    # (one paper take is measured once, cold)
+            fn(ex, out / f"{name}-w{workers}-cold")    # cold: workers import, load models, build scenes, compile
         cold = time.perf_counter() - t0
         t0 = time.perf_counter()
         units, folder = fn(ex, out / f"{name}-w{workers}")   # warm: the same work again on the same workers
