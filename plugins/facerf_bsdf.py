@@ -34,6 +34,10 @@ cornea highlight is not part of this response.
      - string — light-stage rule, a ``LIGHT_BASIS_METHODS`` name (default ``voronoi``, or ``hat``)
    * - self_visibility
      - boolean — divide the captured self-visibility out (:mod:`mifacerf.rendering.self_visibility`; default true)
+   * - visibility_rule
+     - string — how the divided-out self-visibility is measured: ``cell`` (default: the unblocked share of
+       each light's Voronoi cell — agreement with the exact path under environments) or ``ray`` (the ray
+       towards the light itself — a directional or point light along a stage light)
    * - sampling
      - string — ``reflectance`` (default: half the samples by the fields' response per light) or ``cosine``
    * - parts
@@ -97,6 +101,13 @@ class FaceRFBSDF(mi.BSDF):
         self.n_skin_triangles = None
         self.parts = None
         self.with_parts = bool(props["parts"]) if "parts" in props else True
+        if "visibility_rule" in props:
+            from mifacerf.rendering.self_visibility import VISIBILITY_RULES
+
+            if props["visibility_rule"] not in VISIBILITY_RULES:
+                raise ValueError(f"facerf_bsdf: parameter 'visibility_rule': {props['visibility_rule']!r} is not "
+                                 f"one of {', '.join(VISIBILITY_RULES)}")
+            self.fields["visibility_rule"] = props["visibility_rule"]
         for key, cast in (("max_slots", int), ("depth_tolerance", float)):   # the Python API's skips, by name
             if key in props:
                 self.fields[key] = cast(props[key])

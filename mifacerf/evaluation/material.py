@@ -490,6 +490,8 @@ def main(argv=None) -> None:
     ap.add_argument("--exact-basis", default="voronoi")
     ap.add_argument("--no-self-visibility", action="store_true", help="the material keeps the captured "
                     "self-shadowing (shadowed again by the shadow rays)")
+    ap.add_argument("--visibility-rule", default=None, help="the material's self-visibility rule: cell "
+                    "(default) or ray (facerf_bsdf visibility_rule)")
     ap.add_argument("--directional", action="store_true", help="the closed-form check instead: a directional "
                     "emitter along each of the most frontal light-stage lights (directional_oracle)")
     ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
@@ -501,6 +503,10 @@ def main(argv=None) -> None:
                     "facerf integrator instead, per part (parts)")
     ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
+    bsdf = {"self_visibility": False} if a.no_self_visibility else {}
+    if a.visibility_rule:
+        bsdf["visibility_rule"] = a.visibility_rule
+    bsdf = bsdf or None
     if a.parts:
         for r in parts(a.model, a.parts, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0]):
             print(r)
@@ -512,12 +518,10 @@ def main(argv=None) -> None:
         return
     if a.emitters:
         print(format_emitter_rows(emitters(a.model, size=a.size, spp=a.spp, integrators=a.integrators.split(","),
-                                           env=a.env, bsdf={"self_visibility": False} if a.no_self_visibility
-                                           else None)))
+                                           env=a.env, bsdf=bsdf)))
         return
     if a.directional:
-        for r in directional_oracle(a.model, size=a.size, spp=a.spp,
-                                    bsdf={"self_visibility": False} if a.no_self_visibility else None):
+        for r in directional_oracle(a.model, size=a.size, spp=a.spp, bsdf=bsdf):
             print(r)
         return
     if a.animation:
@@ -526,8 +530,7 @@ def main(argv=None) -> None:
                 print(integ, r)
         return
     print(format_rows(compare(a.model, a.env, a.integrators.split(","), a.size, a.spp, a.expression,
-                              exact_basis=a.exact_basis,
-                              bsdf={"self_visibility": False} if a.no_self_visibility else None)))
+                              exact_basis=a.exact_basis, bsdf=bsdf)))
 
 
 if __name__ == "__main__":

@@ -156,7 +156,7 @@ class MaterialState:
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
-                 rank: int | None = None, depth_tolerance: float = None):
+                 rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell"):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -188,7 +188,7 @@ class MaterialState:
         if self_visibility:   # divide the captured self-shadowing out (:mod:`.self_visibility`)
             from .self_visibility import visibility
 
-            self.vis_light = to_jit(mi.Float, visibility(model).reshape(-1))
+            self.vis_light = to_jit(mi.Float, visibility(model, visibility_rule).reshape(-1))
         self._lum: dict[int, np.ndarray] = {}
         self.sampling = LightSampling(model.light_directions)
         self.update(target, weights)

@@ -109,11 +109,22 @@ def cell_visibility(vertices, triangles, directions, n: int = CELL_SAMPLES) -> n
     return out.astype(np.float32)
 
 
-def visibility(model) -> np.ndarray:
-    """(S, T, L) float32 self-visibility of every source expression of ``model`` (see module docstring)."""
-    key = _key(model)
+#: how the captured self-visibility of a light is measured: ``cell`` — the unblocked share of the light's
+#: Voronoi cell (the material then agrees with the exact path under environments, which spread each light
+#: over its cell); ``ray`` — the one ray towards the light (agrees with a directional or point light along
+#: a stage light, which lights along that very ray)
+VISIBILITY_RULES = ("cell", "ray")
+
+
+def visibility(model, rule: str = "cell") -> np.ndarray:
+    """(S, T, L) float32 self-visibility of every source expression of ``model`` by ``rule``
+    (:data:`VISIBILITY_RULES`; see the module docstring)."""
+    if rule not in VISIBILITY_RULES:
+        raise ValueError(f"self-visibility rule {rule!r} is not one of {', '.join(VISIBILITY_RULES)}")
+    key = (_key(model), rule)
     with _LOCK:
         if key not in _CACHE:
-            _CACHE[key] = np.stack([cell_visibility(model.vertices[s], model.triangles, model.light_directions)
+            how = cell_visibility if rule == "cell" else trace
+            _CACHE[key] = np.stack([how(model.vertices[s], model.triangles, model.light_directions)
                                     for s in range(len(model.expressions))])
         return _CACHE[key]

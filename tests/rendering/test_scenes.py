@@ -190,7 +190,9 @@ def test_bad_emitters_and_plugin_parameters_name_themselves(toy_model, plugins):
             ({"type": "facerf", "depth_tolerance": 0.0}, {}, "parameter 'depth_tolerance' must be > 0"),
             ({"type": "facerf", "lights": "0,x"}, {}, "parameter 'lights': light indices"),
             ({"type": "direct"}, {"light_basis": "nearest"}, "nearest.*voronoi"),
-            ({"type": "direct"}, {"depth_tolerance": -1.0}, "depth_tolerance must be > 0")):
+            ({"type": "direct"}, {"depth_tolerance": -1.0}, "depth_tolerance must be > 0"),
+            ({"type": "direct"}, {"visibility_rule": "beam"}, "parameter 'visibility_rule': 'beam' is not one of"),
+            ({"type": "direct"}, {"sampling": "fancy"}, "parameter 'sampling': 'fancy' is not one of")):
         with pytest.raises(Exception, match=match):
             mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor_dict(cam, spp=1),
                           "face": {**face, "bsdf": {"type": "facerf_bsdf", **bsdf}}, "sky": {"type": "constant"}})

@@ -67,6 +67,12 @@ def test_material_self_visibility_is_a_parameter(toy_model, mi):
                                                         "bsdf": {"type": "facerf_bsdf", "self_visibility": flag}}})
         bsdf = scene.shapes()[0].bsdf()
         assert bsdf.state.self_visibility is flag
+    # the rule: the one ray towards each light (0/1) or the unblocked share of its cell
+    from mifacerf.rendering.self_visibility import visibility
+
+    ray, cell = visibility(toy_model, "ray"), visibility(toy_model, "cell")
+    assert set(np.unique(ray)) <= {0.0, 1.0} and ray.shape == cell.shape
+    assert ((cell > 0) & (cell < 1)).any() and np.abs(ray - cell).mean() < 0.2
 
 
 def test_material_renders_compressed_fields_by_method_name(toy_model, mi, tmp_path):
