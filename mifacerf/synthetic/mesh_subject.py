@@ -464,6 +464,7 @@ class MeshSubject:
         tpl, info = build_mesh_template(self.skin_rest, self.skin_faces, occ, cameras, n_dots, dot_seed,
                                         self.eye_centres)
         tpl.eyes = {n: {"centre": self.eye_centres[n], "radius": self.eye_radius} for n in self.eye_centres}
+        tpl.teeth = self._teeth_strips()
         tpl = self._extensions(tpl)
         self.template, self.template_info = tpl, info
         self.dot_tri, self.dot_bary = info["dot_tri"], info["dot_bary"]
@@ -484,6 +485,41 @@ class MeshSubject:
         for line in report[1:]:
             if "left out" in line or "xatlas" in line or "dropped" in line:
                 warnings.warn(line, MeshSubjectWarning, stacklevel=3)
+
+    def _teeth_strips(self, n_teeth: int = 10) -> dict:
+        """The paper's teeth model for each teeth part: a strip along its front ``n_teeth`` tooth widths,
+        vertices alternating incisal edge / gum line at ``n_teeth + 1`` evenly spaced x positions (the
+        front-most teeth vertices near each: the edge is the lowest of the upper teeth, the highest of
+        the lower), two triangles per tooth, facing +Z; in the part's rest frame (world at the neutral)."""
+        out = {}
+        for key, name in (("upper", "teeth_upper"), ("lower", "teeth_lower")):
+            if name not in self.part_rest:
+                continue
+            P = self.part_rest[name]
+            front = P[P[:, 2] > P[:, 2].max() - 0.008]
+            x0, x1 = np.percentile(front[:, 0], [2, 98])
+            xs = np.linspace(x0, x1, n_teeth + 1)
+            half = 0.5 * (x1 - x0) / n_teeth
+            V = []
+            for x in xs:
+                near = front[np.abs(front[:, 0] - x) < half]
+                if len(near) == 0:
+                    near = front[np.argsort(np.abs(front[:, 0] - x))[:3]]
+                lo, hi = near[np.argmin(near[:, 1])], near[np.argmax(near[:, 1])]
+                V += [lo, hi] if key == "upper" else [hi, lo]          # incisal edge, then gum line
+            V = np.asarray(V)
+            F = []
+            for k in range(n_teeth):
+                e0, g0, e1, g1 = 2 * k, 2 * k + 1, 2 * k + 2, 2 * k + 3
+                F += [[e0, e1, g1], [e0, g1, g0]]
+            F = np.asarray(F, np.int32)
+            n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+            if n[:, 2].sum() < 0:
+                F = F[:, [0, 2, 1]]
+            out[key] = {"part": name, "vertices": V, "triangles": F}
+        if out:
+            self.report.append("teeth strips: " + ", ".join(f"{k} {len(v['triangles']) // 2} teeth" for k, v in out.items()))
+        return out
 
     def _extensions(self, tpl):
         """The template with the extensions beyond the dots (scalp, ears, neck, back of the head; issue 16),

@@ -64,6 +64,7 @@ def test_own_head_end_to_end(built):
     # the face as rendered from the model against the dot-free truth (a tiny rig: 48 lights, 128 px)
     assert psnr(img, gt, mask) > 18.0
     assert (img[..., 3][mask] > 0.5).mean() > 0.9               # the model covers the face
+    assert "eyes" in face.model.references                       # its eyes (and teeth, when seen) are modelled
 
 
 @pytest.mark.slow

@@ -89,6 +89,7 @@ def test_production_style_head(subject, head):
     assert {"ear_L", "ear_R", "nose_bridge"} <= set(t.names)
     assert s.template_info["coverage"] >= 0.98 and (s.template_info["dot_views"] >= 2).all()
     assert set(t.eyes) == {"eye_left", "eye_right"}
+    assert set(t.teeth) == {"upper", "lower"} and len(t.teeth["lower"]["triangles"]) == 20   # the paper's strips
     assert "extensions: " in rep and t.kinds.count("extension") > 0 and "scalp" in t.extensions   # issue 16
     # the user's albedo as given: the face tile is red on the subject's left, blue on its right
     alb = pose.textures.albedo
