@@ -84,7 +84,6 @@ class LightSampling:
         self.cell_cdf = to_jit(mi.Float, cdf)
         self.start = to_jit(mi.UInt32, start.astype(np.uint32))
         self.count = to_jit(mi.UInt32, counts.astype(np.uint32))
-        self.has_area = self.area > 0
 
     def set_table(self, response: np.ndarray) -> None:
         """Per-vertex response (T, L) ≥ 0 → the per-vertex light probabilities and their CDF (on the device)."""
@@ -270,7 +269,7 @@ class MaterialState:
             return np.asarray(f.rf)
         from .compression import reconstruct
 
-        return reconstruct(self.model.compressed_field(s, c, self.rank, self.method))
+        return reconstruct(self.model.compressed_field(s, c, self.rank, self.method), self.model.light_directions)
 
     # ------------------------------------------------------------------ kernel
     def evaluate(self, tri, p, view, light, active=True):

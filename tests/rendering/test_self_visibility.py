@@ -106,6 +106,10 @@ def test_material_renders_compressed_fields_by_method_name(toy_model, mi, tmp_pa
     assert exact.max() > 0
     err = np.sqrt(((exact - pca) ** 2).mean())
     assert err < 0.05 * exact.max(), err
+    # sh (spherical-harmonic fields, reconstructed per light's cell at upload) by its name too
+    compress_model(Model(root), 8, progress=False, method="sh")
+    sh = render(method="sh", rank=8)
+    assert np.isfinite(sh).all() and np.sqrt(((exact - sh) ** 2).mean()) < 0.25 * exact.max()
     with pytest.raises(Exception, match="unknown compression method 'zip'; choose one of exact, pca"):
         render(method="zip")
     with pytest.raises(Exception, match="pca3"):
