@@ -4,18 +4,7 @@ the nearest covered pixel (:func:`mifacerf.rendering.frame.resolve_pixels`)."""
 import numpy as np
 import pytest
 
-from helpers.toy import make_toy
-
-
-@pytest.fixture(scope="module")
-def toy_model(tmp_path_factory, mi):
-    from mifacerf.rendering.build import build_model
-    from mifacerf.rendering.model import Model
-
-    root = tmp_path_factory.mktemp("toy_silhouette")
-    cap = make_toy(root, names=("neutral", "stretch"), size=32, n_pos=6, n_str=5, truth_registration=True).capture
-    build_model(cap, root / "model")
-    return Model(root / "model")
+from rendering.conftest import toy_model  # noqa: F401  (the built toy model fixture, shared)
 
 
 def _clip(poly, axis, value, keep_below):
