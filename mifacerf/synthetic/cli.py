@@ -46,9 +46,8 @@ def synth_cmd(out, preset, subject_folder, scale, n_dots, shapes, expressions, o
     options = {"scale": scale, "n_dots": n_dots, "shapes": shapes.split(",") if shapes else None}
     reuse = performance is not None and not overwrite and (Path(out) / "capture" / "manifest.json").exists()
     try:
-        if not reuse:
-            Path(out).mkdir(parents=True, exist_ok=True)
-        with open_executor(workers if not reuse else 1, cluster, shared=[out, subject_folder]) as executor:
+        seen = next(p for p in (Path(out), *Path(out).absolute().parents) if p.exists())   # OUT or its nearest parent
+        with open_executor(workers if not reuse else 1, cluster, shared=[seen, subject_folder]) as executor:
             cap = Path(out) / "capture" if reuse else synthesize(
                 out, preset, subject_folder, expressions.split(",") if expressions else None, overwrite,
                 executor=executor, subject_options=options, report=lambda line: click.echo(f"subject: {line}"))
