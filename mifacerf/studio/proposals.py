@@ -12,6 +12,9 @@
   points and the lower-teeth mark are projected from it into the views ``R``'s rotoscoping used (or the
   two views facing the face most directly); the irises are ``R``'s curves moved with the eyelids (or the
   template's limbus looking forward).
+  Coarse points that are mouth corners are clicked where the lips' colour ends in the two views facing
+  the mouth (:func:`_mouth_corners_from_images`), and doubtful coarse proposals are flagged
+  (:func:`flag_coarse`).
 * :func:`propose_template` — a template from the neutral's images alone (:mod:`.template_proposal`).
 
 Proposals are never written by themselves: the page shows them and the user accepts, moves or deletes
