@@ -42,7 +42,7 @@ from typing import Callable
 import numpy as np
 
 from ..formats.capture import CaptureError, CaptureWriter, ExpressionEntry, Radiometry
-from ..formats.files import sha256_file
+from ..formats.files import FolderLock, sha256_file
 from ..imageio import ImageFileError, read_exr, write_exr
 from ..rig import Rig
 from .hardware.controller import (CommandRefused, ControllerError, ControllerTimeout, DeviceReset,
@@ -355,8 +355,15 @@ class CaptureSession:
         each take's outcome.
 
         Raises :class:`SessionInterrupted` (resumable) when the hardware, the disk or
-        the operator (Ctrl-C) stops it; the journal says where it stopped.
+        the operator (Ctrl-C) stops it; the journal says where it stopped. One session at a time per
+        folder: the folder's lock (``.<folder>.lock`` beside it) is held while it runs, and a second
+        session on the same folder is refused (a :class:`SessionError` that is also a
+        :class:`~mifacerf.errors.RefusedError`: exit 3), so two never interleave their takes.
         """
+        with FolderLock(self.root, SessionError, wait=False, what="capture session"):
+            return self._run(controller, cameras, operator, log)
+
+    def _run(self, controller, cameras, operator, log) -> SessionReport:
         if self.state.finished and (self.root / "manifest.json").exists():
             return self.report()
         self.controller, self.cameras = controller, cameras

@@ -260,3 +260,35 @@ def test_journal_records_what_is_needed_to_resume(tmp_path, rig):
     manifest = json.loads((root / "manifest.json").read_text())
     assert complete["checksums"] == {k: v for k, v in manifest["checksums"].items()}
     assert manifest["session"]["journal"] == "session.jsonl"
+
+
+def test_a_second_session_on_one_folder_is_refused_while_the_first_runs(tmp_path, rig):
+    """Two sessions on one folder would interleave their takes in one journal: while one runs (holds the
+    folder's lock), another is refused at once with a RefusedError naming the holder; nothing is written."""
+    import threading
+
+    from mifacerf.errors import RefusedError
+    from mifacerf.formats.files import FolderLock
+
+    root = tmp_path / "cap"
+    s = new_session(root, rig, 2)
+    before = sorted(p.relative_to(root).as_posix() for p in root.rglob("*"))
+    held, done = threading.Event(), threading.Event()
+
+    def hold():                       # another thread's descriptor is another holder, as a process would be
+        with FolderLock(root, SessionError):
+            held.set()
+            done.wait(60)
+    t = threading.Thread(target=hold)
+    t.start()
+    try:
+        assert held.wait(30)
+        with pytest.raises(SessionError, match=r"locked by PID \d+ .*another capture session is running") as exc:
+            run_lab(s)
+        assert isinstance(exc.value, RefusedError)
+    finally:
+        done.set()
+        t.join()
+    assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*")) == before
+    rep, _ = run_lab(CaptureSession.open(root))       # once the holder is gone the session runs
+    assert rep.complete
