@@ -146,15 +146,18 @@ class Subject:
         rast = cache.cached(akey, lambda: dict(zip(("tri", "bary", "inside"),
                                                     rasterize(at["uv"], at["uv_faces"], res))))
         raster = (rast["tri"], rast["bary"].astype(np.float32), rast["inside"])
+        # the static maps are cached in float16, and a freshly built subject uses them rounded the same way,
+        # so a process with a cold cache renders bit for bit the subject a process with a warm one does
         static = cache.load(cache.key("skin-static", res, float(self.dots_neutral.sum())))
-        self.tex = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
-                                static=None if static is None else {k: v.astype(np.float32) for k, v in static.items()},
-                                raster=raster)
         if static is None:
+            static = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
+                                  static=None, raster=raster).static_arrays()
             try:
-                cache.save(cache.key("skin-static", res, float(self.dots_neutral.sum())), **self.tex.static_arrays())
+                cache.save(cache.key("skin-static", res, float(self.dots_neutral.sum())), **static)
             except OSError:
                 pass
+        self.tex = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
+                                static={k: v.astype(np.float32) for k, v in static.items()}, raster=raster)
 
         # registration template
         from .template import build_template
@@ -255,10 +258,11 @@ class Subject:
             res = self.texture_resolution
             key = cache.key("skin-static-nodots", res, float(self.skin_rest.sum()))
             static = cache.load(key)
-            if static is None:
-                static = self.tex._static_maps(np.zeros((0, 3)), DOT_RADIUS)
+            if static is None:      # rounded as the cache stores it (cold and warm caches agree bit for bit)
+                static = {k: v.astype(np.float16) for k, v in
+                          self.tex._static_maps(np.zeros((0, 3)), DOT_RADIUS).items()}
                 try:
-                    cache.save(key, **{k: v.astype(np.float16) for k, v in static.items()})
+                    cache.save(key, **static)
                 except OSError:
                     pass
             clean = copy.copy(self)
