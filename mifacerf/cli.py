@@ -152,10 +152,9 @@ class LazyGroup(click.Group):
             except click.ClickException as exc:
                 if debug:
                     raise
-                # a lock refusal raised as, or wrapped in, a click error still exits 3 (not click's 1)
+                # a lock refusal a command wrapped in its click error still exits 3 (not click's 1)
                 self._fail(ctx, exc.format_message(),
-                           EXIT_REFUSED if isinstance(exc, RefusedError) or isinstance(exc.__cause__, RefusedError)
-                           else exc.exit_code)
+                           EXIT_REFUSED if isinstance(exc.__cause__, RefusedError) else exc.exit_code)
             except (Exception, KeyboardInterrupt) as exc:  # noqa: BLE001 (the top of the program)
                 if debug:
                     raise

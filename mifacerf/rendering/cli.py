@@ -68,7 +68,7 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     import os
     import secrets
 
-    from ..formats.files import FolderLock, fsync_dir
+    from ..formats.files import fsync_dir
     from .scenefile import render_scene_file
 
     if Path(scene_or_model).is_dir():
@@ -83,10 +83,6 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     # the EXR and its PNG are written under temporary names beside OUTPUT and renamed over the old ones
     # only once both are complete: a failed, killed or out-of-space render leaves the previous pair
     tmp = out.parent / f".{out.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{out.suffix}"
-    # one render at a time per OUTPUT (a lock file .<name>.lock beside it): two renders to one file would
-    # otherwise end with one's EXR beside the other's PNG; the second is refused (exit 3)
-    lock = FolderLock(out, click.ClickException, wait=False, what="render (mifacerf render -o)")
-    lock.acquire()
     try:
         render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
         if tmp.with_suffix(".png") != tmp:
@@ -98,7 +94,6 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     finally:
         for p in (tmp, tmp.with_suffix(".png")):
             p.unlink(missing_ok=True)
-        lock.release()
     click.echo(f"wrote {out}")
 
 

@@ -214,27 +214,3 @@ def test_output_folder_dropped_unfinished_is_discarded_and_unlocked(tmp_path):
         with pytest.raises(ValueError, match=r"done.json: not written; the new run folder is incomplete"):
             o.finish()
     assert not target.exists() and siblings(target) == []
-
-
-def test_two_renders_to_one_output_the_second_is_refused_with_exit_3(tmp_path):
-    """'mifacerf render -o F' holds F's lock while it renders: a second render to F is refused (exit 3) and
-    leaves F's EXR and PNG as they were (else one render's EXR could end beside the other's PNG)."""
-    import click
-
-    from mifacerf.cli import main
-
-    out = tmp_path / "render.exr"
-    out.write_bytes(b"old exr")
-    out.with_suffix(".png").write_bytes(b"old png")
-    scene = tmp_path / "scene.xml"
-    scene.write_text("<scene version='3.0.0'/>")
-    release = hold_lock(out, click.ClickException)
-    try:
-        r = CliRunner().invoke(main, ["render", str(scene), "-o", str(out)])
-        assert r.exit_code == EXIT_REFUSED, r.output
-        assert "locked by PID" in r.stderr and "Traceback" not in r.output
-    finally:
-        release()
-    assert out.read_bytes() == b"old exr" and out.with_suffix(".png").read_bytes() == b"old png"
-    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == [
-        "render.exr", "render.png", "scene.xml"]
