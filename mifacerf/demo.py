@@ -26,7 +26,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from .formats.files import OutputFolder, atomic_write_bytes
+from .formats.files import FolderLock, OutputFolder, atomic_write_bytes
 from .steps import Steps
 
 ENVIRONMENTS = ("sky", "interior", "gradient")
@@ -173,6 +173,13 @@ def demo_cmd(out, preset, fast):
     performance, metrics."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    # one demo at a time per OUT (its lock, .OUT.lock beside it, deleted when the run ends): a second one
+    # is refused at once (exit 3) instead of both rewriting OUT/steps.json (a lost step record)
+    with FolderLock(out, ValueError, wait=False, what="demo on this folder (mifacerf demo -o)", ephemeral=True):
+        _demo(out, preset, fast)
+
+
+def _demo(out: Path, preset: str, fast: bool) -> None:
     st = Stages()
     steps = Steps(out, log=click.echo)
     metrics = {"preset": preset}

@@ -31,6 +31,7 @@ RULES = [
     (r"test_bad_options", r"every_command", ("every command", "bad option value (coverage)", "clear error")),
     (r"test_bad_options", r"\[(\S+) ", None),          # stage = the command in the parameter id
     (r"test_steps", r"sigkill", ("demo", "kill (SIGKILL)", "recovered")),
+    (r"test_steps", r"two_demos", ("demo", "two processes", "clear error")),
     (r"test_model_transactions", r"verify_passes", ("model", "sound input (control)", "correct, nothing to report")),
     (r"test_steps", r"", ("demo", "second run, nothing changed", "correct, nothing to report")),
     (r"test_model_transactions", r"template_inconsistent", ("build", "inconsistent input (template)", "clear error")),
@@ -49,7 +50,10 @@ RULES = [
     (r"test_corruption", r"capture", ("capture", "corrupt/truncate/delete a file", "clear error")),
     (r"test_cli_errors", r"", ("every command", "error reporting", "clear error")),
     (r"test_output_transactions", r"refused_with_exit_3", (None, "two processes", "clear error")),
+    (r"manifests", r"second_is_refused", (None, "two processes", "clear error")),
     (r"test_output_transactions", r"dropped_unfinished", (None, "failed step / refused input", "recovered")),
+    (r"test_output_transactions", r"next_render_finishes", ("render", "kill (SIGKILL)", "recovered")),
+    (r"test_output_transactions", r"ephemeral_lock", ("formats (files, locks)", "two processes", "recovered")),
     (r"transactions|atomic|manifests", r"sigkill|interrupted", (None, "kill (SIGKILL)", "recovered")),
     (r"transactions|atomic|manifests", r"full_disk", (None, "full disk (ENOSPC)", "recovered")),
     (r"transactions|atomic|manifests", r"two_|lock|thread", (None, "two processes", "recovered")),
@@ -67,7 +71,9 @@ STAGE_OF_MODULE = {"test_model_transactions": "build", "test_registration_transa
 #: module -> [(test-name regex, stage)]: the stage of a module's tests by name (before STAGE_OF_MODULE)
 STAGE_BY_NAME = {"test_model_transactions": [(r"compress", "compress")],
                  "test_output_transactions": [(r"track", "track"), (r"drive", "drive"),
-                                              (r"output_folder", "formats (files, locks)")]}
+                                              (r"output_folder", "formats (files, locks)"),
+                                              (r"render", "render")],
+                 "test_capture_performance_manifests": [(r"recordings", "capture/performance")]}
 
 
 def stage_of(module: str, name: str) -> str:

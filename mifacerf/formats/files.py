@@ -15,7 +15,11 @@ Locks (:class:`FolderLock`): one writer per folder, serialised by an advisory
 holder's PID, host and start time. The kernel drops the lock when its process dies,
 so a lock left by a killed process is recovered by the next writer without a word;
 a live holder is reported as ``locked by PID … on HOST since …`` (and waited for,
-or refused).
+or refused). An *ephemeral* lock (beside a user's own files: a render's output, the demo's folder)
+deletes its file on release.
+
+Files replaced together (:func:`replace_together`): temporary files renamed over their
+destinations through a journal that the next writer finishes (``mifacerf render -o``'s EXR + PNG).
 """
 from __future__ import annotations
 
@@ -239,6 +243,14 @@ def _holder(fd: int) -> str:
         return "another process"
 
 
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        a, b = os.fstat(fd), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
 class FolderLock:
     """Exclusive writer's lock on ``folder`` (a context manager; re-entrant within a thread).
 
@@ -249,10 +261,14 @@ class FolderLock:
     """
 
     def __init__(self, folder: str | os.PathLike, error: type[Exception] = OSError, wait: bool | float = True,
-                 log=None, what: str = "write"):
+                 log=None, what: str = "write", ephemeral: bool = False):
         self.folder = Path(folder)
         self.path = lock_path(folder)
         self.error, self.wait, self.log, self.what = error, wait, log, what
+        # ephemeral: the lock file is deleted on release (for a lock beside a user's own files, e.g. one
+        # render's output, where a lasting dot-file would be litter); a holder that finds it has locked
+        # a file another holder deleted meanwhile opens the new one and locks again
+        self.ephemeral = ephemeral
         self._fd = None
 
     def acquire(self) -> "FolderLock":
@@ -265,9 +281,17 @@ class FolderLock:
                 self._fd = _held[key][0]
                 return self
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                self._lock(fd)
+            except BaseException:
+                os.close(fd)
+                raise
+            if not self.ephemeral or _same_file(fd, self.path):
+                break
+            os.close(fd)                 # locked a file its holder deleted on release: lock the new one
         try:
-            self._lock(fd)
             os.ftruncate(fd, 0)
             os.lseek(fd, 0, os.SEEK_SET)
             os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
@@ -312,6 +336,11 @@ class FolderLock:
             os.ftruncate(fd, 0)
         except OSError:
             pass
+        if self.ephemeral:
+            try:
+                self.path.unlink()       # still held: a waiter that locks it next sees it is gone (above)
+            except OSError:
+                pass
         fcntl.flock(fd, fcntl.LOCK_UN)
         os.close(fd)
 
@@ -320,6 +349,42 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+# ---------------------------------------------------------------- files replaced together
+def replace_together(pairs, journal: str | os.PathLike) -> None:
+    """Rename complete temporary files over their destinations as one roll-forward transaction.
+
+    ``pairs``: ``[(temporary, destination), ...]``, all in one folder (``mifacerf render -o``: the EXR
+    and its PNG). The journal (a small JSON file, written atomically) names the pairs before the first
+    rename and is deleted after the last, so a process killed between two renames leaves the journal:
+    :func:`finish_replacing` — run by the next writer of the same destinations, under their lock —
+    completes the renames left, and the destinations are the new set again (never the old one of one
+    file beside the new one of the other, past that point). Call it with the destinations' lock held.
+    """
+    journal = Path(journal)
+    write_json_atomic(journal, {"replace": [[Path(t).name, Path(d).name] for t, d in pairs]})
+    finish_replacing(journal)
+
+
+def finish_replacing(journal: str | os.PathLike, error: type[Exception] = OSError) -> bool:
+    """Finish an interrupted :func:`replace_together` (True), or do nothing when ``journal`` is absent."""
+    journal = Path(journal)
+    try:
+        entries = json.loads(journal.read_text())["replace"]
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise error(f"{journal}: unreadable replacement journal ({exc}); its temporary files beside it hold "
+                    "the newer render: rename them by hand or delete the journal") from exc
+    for tmp, dst in entries:
+        src = journal.parent / tmp
+        if src.exists():                 # absent: renamed before the interruption
+            os.replace(src, journal.parent / dst)
+    fsync_dir(journal.parent)
+    journal.unlink()
+    fsync_dir(journal.parent)
+    return True
 
 
 # ---------------------------------------------------------------- whole-folder transactions

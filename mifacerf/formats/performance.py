@@ -48,7 +48,7 @@ import numpy as np
 from ..camera import Camera
 from ..imageio import ImageFileError, read_exr, write_exr
 from ..errors import MifacerfError
-from .files import read_json, read_json_manifest, require_keys, sha256_file, write_json_atomic
+from .files import FolderLock, read_json, read_json_manifest, require_keys, sha256_file, write_json_atomic
 
 FORMAT = "mifacerf.performance"
 VERSION = 2
@@ -169,11 +169,26 @@ class PerformanceFolder:
 
 
 class PerformanceWriter:
-    """Writes a performance folder; :meth:`finish` writes the manifest (completion marker) last."""
+    """Writes a performance folder; :meth:`finish` writes the manifest (completion marker) last.
+
+    The folder's lock (``.<name>.lock`` beside it) is held from construction to :meth:`finish` (or until
+    the writer is dropped): a second recording into the same folder is refused at once (exit 3).
+    """
 
     def __init__(self, root: str | os.PathLike, cameras: list[Camera], fps: float, n_frames: int,
                  template: dict, extra: dict | None = None):
+        import weakref
+
         self.root = Path(root)
+        self._lock = FolderLock(self.root, PerformanceError, wait=False, what="performance recording").acquire()
+        self._unlock = weakref.finalize(self, self._lock.release)
+        try:
+            self._start(cameras, fps, n_frames, template, extra)
+        except BaseException:
+            self._unlock()
+            raise
+
+    def _start(self, cameras, fps, n_frames, template, extra) -> None:
         self.cameras = cameras
         self.meta = {"format": FORMAT, "version": VERSION, "fps": float(fps), "n_frames": int(n_frames),
                      "cameras": [c.to_dict() for c in cameras], "frame_pattern": FRAME_PATTERN,
@@ -226,4 +241,5 @@ class PerformanceWriter:
         self.meta["checksums"] = {p.relative_to(self.root).as_posix(): sha256_file(p) for p in frames}
         self.meta["sizes"] = {p.relative_to(self.root).as_posix(): p.stat().st_size for p in frames}
         write_json_atomic(self.root / "manifest.json", self.meta)
+        self._unlock()
         return self.root

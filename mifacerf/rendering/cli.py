@@ -68,7 +68,7 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     import os
     import secrets
 
-    from ..formats.files import fsync_dir
+    from ..formats.files import FolderLock, finish_replacing, replace_together
     from .scenefile import render_scene_file
 
     if Path(scene_or_model).is_dir():
@@ -79,22 +79,39 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     bad = [d for d in defines if "=" not in d]
     if bad:
         raise click.BadParameter(f"expected NAME=VALUE, got {bad[0]!r}", param_hint="-D")
-    out = Path(output)
-    # the EXR and its PNG are written under temporary names beside OUTPUT and renamed over the old ones
-    # only once both are complete: a failed, killed or out-of-space render leaves the previous pair
-    tmp = out.parent / f".{out.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp{out.suffix}"
-    try:
-        render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
-        if tmp.with_suffix(".png") != tmp:
-            os.replace(tmp.with_suffix(".png"), out.with_suffix(".png"))
-        os.replace(tmp, out)
-        fsync_dir(out.parent)
-    except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
-        raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
-    finally:
-        for p in (tmp, tmp.with_suffix(".png")):
-            p.unlink(missing_ok=True)
-    click.echo(f"wrote {out}")
+    out = Path(os.path.abspath(output))
+    png = out.with_suffix(".png")
+    # The EXR and its PNG replace the old pair as one transaction: written under temporary names beside
+    # OUTPUT, then renamed through a journal (.<name>.replacing) that the next render to OUTPUT finishes
+    # if this one is killed between the two renames. One render at a time per OUTPUT: its lock
+    # (.<name>.lock, deleted when the render ends) refuses a second one (exit 3). A failed, killed or
+    # out-of-space render leaves the previous pair.
+    journal = out.parent / f".{out.name}.replacing"
+    stem = f".{out.name}."
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with FolderLock(out, ValueError, wait=False, what="render to this output (mifacerf render -o)", ephemeral=True):
+        finish_replacing(journal, ValueError)
+        for name in os.listdir(out.parent):            # temporaries of a render killed before its renames
+            for start in (stem, f".{journal.name}."):  # (and of its journal's own atomic write)
+                if name.startswith(start) and ".tmp" in name[len(start):]:
+                    (out.parent / name).unlink(missing_ok=True)
+        tmp = out.parent / f"{stem}{os.getpid()}-{secrets.token_hex(4)}.tmp{out.suffix}"
+        try:
+            render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
+            pairs = [(tmp.with_suffix(".png"), png)] if tmp.with_suffix(".png") != tmp else []
+            replace_together(pairs + [(tmp, out)], journal)
+        except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
+            raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
+        finally:
+            if journal.exists():                       # failed between two renames: roll forward now if
+                try:                                   # the disk lets us (else the next render does)
+                    finish_replacing(journal, ValueError)
+                except (OSError, ValueError):
+                    pass
+            if not journal.exists():
+                for p in (tmp, tmp.with_suffix(".png")):
+                    p.unlink(missing_ok=True)
+    click.echo(f"wrote {output}")
 
 
 @click.command("compress")

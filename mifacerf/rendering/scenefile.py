@@ -72,7 +72,10 @@ def _plugin_error(exc: RuntimeError, xml_path) -> SceneError | None:
 
 def scene_defaults(xml_path) -> dict:
     """The ``<default name=... value=...>`` entries of a Mitsuba scene file."""
-    root = ET.parse(xml_path).getroot()
+    try:
+        root = ET.parse(xml_path).getroot()
+    except ET.ParseError as exc:
+        raise SceneError(f"{xml_path}: not a well-formed scene file ({exc})") from exc
     return {d.get("name"): d.get("value") for d in root.iter("default")}
 
 

@@ -3,7 +3,8 @@ chosen moment, an injected ENOSPC.
 
 ``python tests/reliability/faults.py JOB ARGS_JSON KILL`` runs one job in a child (``build``, ``register``,
 ``compress``; ``drive`` and ``demo`` with the stand-ins of :mod:`stand_ins`; ``output``: an OutputFolder
-of a few files). KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
+of a few files; ``replace``: formats.files.replace_together of temporary files, as ``render -o`` does).
+KILL is ``none``, ``time:SECONDS`` (SIGKILL itself that long after it starts the job) or
 ``call:NAME:N[:FILTER]`` (SIGKILL itself just before the N-th call of ``os.NAME`` whose arguments contain
 FILTER, or ``WANTED!UNWANTED``: contain WANTED but not UNWANTED — a precise crash point between two
 renames). The child prints ``ready`` once imported.
@@ -48,15 +49,15 @@ def killed(proc) -> bool:
     return proc.returncode == -signal.SIGKILL
 
 
-def hold_lock(folder, error):
+def hold_lock(folder, error, **kw):
     """A thread holding ``folder``'s FolderLock (flock treats another thread's descriptor as another holder,
-    as another process would be); returns the function that releases it."""
+    as another process would be; ``kw`` for FolderLock); returns the function that releases it."""
     from mifacerf.formats.files import FolderLock
 
     held, done = threading.Event(), threading.Event()
 
     def hold():
-        with FolderLock(folder, error):
+        with FolderLock(folder, error, **kw):
             held.set()
             done.wait(60)
     t = threading.Thread(target=hold)
@@ -122,6 +123,8 @@ def _main(job: str, args: dict, kill: str) -> None:
         from stand_ins import run_drive
     elif job == "output":
         from mifacerf.formats.files import OutputFolder
+    elif job == "replace":
+        from mifacerf.formats.files import replace_together
     else:
         from mifacerf.registration import register_capture
         from mifacerf.variant import ensure_variant
@@ -146,6 +149,8 @@ def _main(job: str, args: dict, kill: str) -> None:
             (o.root / rel).write_text(text)
         (o.root / "done.json").write_text("{}")
         o.finish()
+    elif job == "replace":         # the files of 'mifacerf render -o' (temporary -> final) renamed together
+        replace_together(args["pairs"], args["journal"])
     else:
         raise SystemExit(f"unknown job {job}")
     print("done", flush=True)

@@ -91,6 +91,26 @@ def test_a_recording_with_other_settings_is_not_mixed_in(tmp_path):
     assert {p: p.read_bytes() for p in perf.rglob("*.exr")} == before
 
 
+def test_two_recordings_into_one_performance_folder_the_second_is_refused(tmp_path):
+    """The writer holds the folder's lock until finish: a second recording (another process; here another
+    thread, which flock treats alike) is refused at once and writes nothing; once the first is done, a
+    recording with the same settings resumes."""
+    from mifacerf.errors import RefusedError
+
+    from .faults import hold_lock
+
+    perf = _perf(tmp_path / "perf", n=3)
+    before = {p: p.read_bytes() for p in perf.rglob("*") if p.is_file()}
+    release = hold_lock(perf, PerformanceError)
+    try:
+        with pytest.raises(RefusedError, match=r"perf: locked by PID .*another performance recording"):
+            _perf(perf, n=3)
+    finally:
+        release()
+    assert {p: p.read_bytes() for p in perf.rglob("*") if p.is_file()} == before
+    _perf(perf, n=3)
+
+
 def test_performance_frames_are_checked_when_read(tmp_path):
     """Item 3: a frame damaged after the recording is found when it is read (tracking reads every frame
     through PerformanceFolder.read), not only by 'mifacerf verify': the size of each frame at open, its

@@ -214,3 +214,117 @@ def test_output_folder_dropped_unfinished_is_discarded_and_unlocked(tmp_path):
         with pytest.raises(ValueError, match=r"done.json: not written; the new run folder is incomplete"):
             o.finish()
     assert not target.exists() and siblings(target) == []
+
+
+# ------------------------------------------------------------------ mifacerf render -o
+def _render(*args):
+    from mifacerf.cli import main
+
+    return CliRunner().invoke(main, ["render", *map(str, args)])
+
+
+def _pair(tmp_path):
+    out = tmp_path / "render.exr"
+    out.write_bytes(b"old exr")
+    out.with_suffix(".png").write_bytes(b"old png")
+    scene = tmp_path / "scene.xml"
+    scene.write_text("<scene version='3.0.0'><this is not a scene/></scene>")
+    return out, scene, snapshot(tmp_path)
+
+
+def test_two_renders_to_one_output_the_second_is_refused_with_exit_3_and_no_lock_file_is_left(tmp_path):
+    """'mifacerf render -o F' holds F's lock while it renders: a second render to F is refused (exit 3) and
+    leaves F's EXR and PNG as they were (else one render's EXR could end beside the other's PNG). The lock
+    file is deleted when the holder ends: nothing is left beside the user's files."""
+    out, scene, before = _pair(tmp_path)
+    release = hold_lock(out, ValueError, ephemeral=True)
+    try:
+        assert (tmp_path / ".render.exr.lock").exists()
+        r = _render(scene, "-o", out)
+        assert r.exit_code == EXIT_REFUSED, r.output
+        assert "render.exr: locked by PID" in r.stderr and "Traceback" not in r.output
+    finally:
+        release()
+    assert snapshot(tmp_path) == before                  # no lock file, no temporary left
+    r = _render(scene, "-o", out)                          # free again: this one runs (and fails on the scene)
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert snapshot(tmp_path) == before
+
+
+def test_an_ephemeral_lock_deleted_by_its_holder_is_never_held_twice(tmp_path):
+    """An ephemeral lock file is deleted by its holder on release; a waiter that had opened it before must not
+    hold the deleted file's lock while another holds the new file's (the inode check in FolderLock.acquire).
+    Four threads (flock treats each one's descriptor as another holder) take it in turns, 25 times each."""
+    import threading
+    import time
+
+    from mifacerf.formats.files import FolderLock
+
+    target = tmp_path / "r.exr"
+    holders, most, errors = [0], [0], []
+    guard = threading.Lock()
+
+    def turns():
+        try:
+            for _ in range(25):
+                with FolderLock(target, ValueError, wait=30, ephemeral=True):
+                    with guard:
+                        holders[0] += 1
+                        most[0] = max(most[0], holders[0])
+                    time.sleep(0.002)
+                    with guard:
+                        holders[0] -= 1
+        except Exception as exc:  # noqa: BLE001 (reported below)
+            errors.append(exc)
+    threads = [threading.Thread(target=turns) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and most[0] == 1, (errors, most)
+    assert os.listdir(tmp_path) == []
+
+
+def test_sigkill_at_every_rename_of_a_render_output_leaves_the_old_pair_or_the_new(tmp_path):
+    """replace_together (render -o's EXR + PNG): killed before, between or after its renames, the pair is —
+    once the next render has finished the journal — both old or both new, never one of each."""
+    from mifacerf.formats.files import finish_replacing
+
+    outcomes = []
+    for n in (1, 2, 3, None):          # killed just before 1: the journal's own rename, 2: the PNG's, 3: the EXR's
+        d = tmp_path / f"k{n}"
+        d.mkdir()
+        (d / "r.exr").write_bytes(b"old exr")
+        (d / "r.png").write_bytes(b"old png")
+        (d / ".r.exr.1-a.tmp.exr").write_bytes(b"new exr")
+        (d / ".r.exr.1-a.tmp.png").write_bytes(b"new png")
+        journal = d / ".r.exr.replacing"
+        p = run_child("replace", {"pairs": [[str(d / ".r.exr.1-a.tmp.png"), str(d / "r.png")],
+                                            [str(d / ".r.exr.1-a.tmp.exr"), str(d / "r.exr")]],
+                                  "journal": str(journal)}, f"call:replace:{n}" if n else "none")
+        assert killed(p) == bool(n), p.stderr[-2000:]
+        if n == 3:
+            assert journal.exists() and (d / "r.png").read_bytes() == b"new png" \
+                and (d / "r.exr").read_bytes() == b"old exr"          # the window the journal closes
+        finish_replacing(journal)                          # what the next render to r.exr does first
+        pair = ((d / "r.exr").read_bytes(), (d / "r.png").read_bytes())
+        assert pair in ((b"old exr", b"old png"), (b"new exr", b"new png")), pair
+        assert not journal.exists()
+        outcomes.append("old" if pair[0] == b"old exr" else "new")
+    assert outcomes == ["old", "new", "new", "new"]
+
+
+def test_the_next_render_finishes_a_killed_renders_pair_and_removes_its_temporaries(tmp_path):
+    """The state a render killed between its two renames leaves (the new PNG in place, the new EXR under its
+    temporary name, the journal), plus the temporaries of a render killed before its renames: the next
+    render to that output (here one that then fails on its scene) first makes the pair whole and new."""
+    out, scene, _ = _pair(tmp_path)
+    out.with_suffix(".png").write_bytes(b"new png")
+    (tmp_path / ".render.exr.7-b.tmp.exr").write_bytes(b"new exr")
+    (tmp_path / ".render.exr.replacing").write_text(json.dumps(
+        {"replace": [[".render.exr.7-b.tmp.png", "render.png"], [".render.exr.7-b.tmp.exr", "render.exr"]]}))
+    (tmp_path / ".render.exr.9-c.tmp.exr").write_bytes(b"half of a killed render")
+    r = _render(scene, "-o", out)
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    assert snapshot(tmp_path) == {"render.exr": b"new exr", "render.png": b"new png",
+                                  "scene.xml": scene.read_bytes()}

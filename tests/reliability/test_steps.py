@@ -92,6 +92,29 @@ def test_demo_second_run_skips_everything_and_rewrites_nothing(tmp_path, monkeyp
     assert calls[6:] == ["register", "model", "renders", "performance", "metrics"]
 
 
+def test_two_demos_on_one_folder_the_second_is_refused_with_exit_3(tmp_path, monkeypatch):
+    """A second 'mifacerf demo -o OUT' while one runs is refused at once (exit 3, who holds it named) and
+    calls no stage, instead of both rewriting OUT/steps.json; the lock file goes with the run."""
+    from mifacerf import demo
+    from mifacerf.cli import main
+    from mifacerf.errors import EXIT_REFUSED
+
+    from .faults import hold_lock
+
+    calls = []
+    for name in ("capture", "register", "model", "renders", "performance", "metrics"):
+        monkeypatch.setattr(demo, f"stage_{name}", lambda *a, _n=name, **k: calls.append(_n))
+    out = tmp_path / "out"
+    release = hold_lock(out, ValueError, ephemeral=True)
+    try:
+        r = CliRunner().invoke(main, ["demo", "-o", str(out), "--preset", "tiny"])
+    finally:
+        release()
+    assert r.exit_code == EXIT_REFUSED, r.output
+    assert "out: locked by PID" in r.stderr and "Traceback" not in r.output
+    assert calls == [] and sorted(os.listdir(tmp_path)) == ["out"] and os.listdir(out) == []
+
+
 def test_sigkill_during_the_demo_steps_leaves_old_or_new_and_the_rerun_redoes_only_what_is_needed(tmp_path):
     """Item 7: the demo (stand-in stages, each output a transaction) killed at random moments of a rerun
     after a hand input changed: every stage's output is its previous complete state or the new one, the
