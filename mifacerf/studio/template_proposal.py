@@ -65,8 +65,11 @@ def _epipolar_pairs(ca, cb, ua: np.ndarray, ub: np.ndarray, tol_px: float) -> np
 
 
 def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float = 1.0, support_px: float = 1.0,
-                     centroid_sigma: float = 1.2, depth_range=(0.5, 3.0)) -> tuple[np.ndarray, dict]:
-    """3-D dots (N, 3) from per-view strength maps {camera: (H, W)}, and a summary."""
+                     centroid_sigma: float = 1.2, depth_range=(0.5, 3.0), grow: bool | dict = True
+                     ) -> tuple[np.ndarray, dict]:
+    """3-D dots (N, 3) from per-view strength maps {camera: (H, W)}, and a summary. ``grow``: add the
+    ambiguous two-view hypotheses that continue the surface of the others (:func:`_grow_on_surface`;
+    a dict: its parameters)."""
     names = [c.name for c in cams]
     peaks = [view_peaks(maps[n], min_peak, centroid_sigma).uv for n in names]
     C = len(cams)
@@ -123,6 +126,7 @@ def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float
     for c in range(C):
         m = used[c]
         unique[m] &= cand[c][idx[c, m]] <= 1
+    ambiguous = good & ~((nviews >= 3) | unique)
     good &= (nviews >= 3) | unique
     scored = [(-int(nviews[n]), float(tr.error[n]), {c: int(idx[c, n]) for c in range(C) if used[c, n]},
                tr.points[n]) for n in np.flatnonzero(good)]
@@ -136,10 +140,66 @@ def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float
             taken[c].add(k)
         out.append(X)
         nv.append(-nviews_neg)
+    n_strong = len(out)
+    if grow and len(out) >= 8:
+        rest = [({c: int(idx[c, n]) for c in range(C) if used[c, n]}, tr.points[n]) for n in np.flatnonzero(ambiguous)]
+        for X in _grow_on_surface(out, rest, taken, **(grow if isinstance(grow, dict) else {})):
+            out.append(X)
+            nv.append(2)
     P = np.asarray(out).reshape(-1, 3)
     views = np.bincount([-s[0] for s in scored], minlength=C + 1).tolist() if scored else []
     return P, {"peaks": [len(p) for p in peaks], "hypotheses": len(hyps), "consistent": len(scored),
-               "points": len(P), "hypotheses_by_views": views, "views_per_point": nv}
+               "points": len(P), "grown": len(P) - n_strong, "hypotheses_by_views": views, "views_per_point": nv}
+
+
+def _grow_on_surface(accepted: list, rest: list, taken: list, neighbours: int = 6, radius: float = 0.05,
+                     min_sep: float = 0.004, tol: float = 0.004, margin: float = 2.0) -> list:
+    """Ambiguous two-view hypotheses ``rest`` [(members {view: peak}, X)] taken where they continue the
+    surface of the ``accepted`` points: best first by the distance from the plane through the ``neighbours``
+    accepted points nearest (within ``radius``; at least 4), at most ``tol``, no accepted point within
+    ``min_sep``, and every rival sharing one of its peaks ``margin`` times farther off (a wrong pairing of
+    two views' dots lies centimetres in front of or behind the face). Rounds until none is added; marks
+    the peaks in ``taken``. Returns the points added."""
+    from scipy.spatial import cKDTree
+
+    added = []
+    rest = list(rest)
+    while rest:
+        A = np.asarray(accepted + added)
+        tree = cKDTree(A)
+        dist, nb = tree.query(np.array([X for _, X in rest]), k=min(neighbours, len(A)),
+                              distance_upper_bound=radius)
+        dist, nb = dist.reshape(len(rest), -1), nb.reshape(len(rest), -1)
+        score = np.full(len(rest), np.inf)
+        for r, (members, X) in enumerate(rest):
+            if any(k in taken[c] for c, k in members.items()) or dist[r, 0] < min_sep:
+                continue
+            ok = np.isfinite(dist[r])
+            if ok.sum() < 4:
+                continue
+            Q = A[nb[r, ok]]
+            c0 = Q.mean(0)
+            normal = np.linalg.svd(Q - c0)[2][-1]
+            score[r] = abs(float((X - c0) @ normal))
+        keep = []
+        for r in np.argsort(score):
+            if not score[r] <= tol:
+                break
+            members = rest[r][0]
+            if any(k in taken[c] for c, k in members.items()):
+                continue
+            rivals = [q for q in range(len(rest)) if q != r
+                      and any(rest[q][0].get(c) == k for c, k in members.items())]
+            if any(score[q] < margin * score[r] + 5e-4 for q in rivals):
+                continue
+            for c, k in members.items():
+                taken[c].add(k)
+            keep.append(r)
+        if not keep:
+            break
+        added += [rest[r][1] for r in keep]
+        rest = [h for q, h in enumerate(rest) if q not in set(keep)]
+    return added
 
 
 def _flat(P: np.ndarray, c: np.ndarray) -> np.ndarray:
