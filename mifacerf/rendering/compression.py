@@ -194,10 +194,10 @@ def lit_texels_pca(coeff_device, rank: int, texels: np.ndarray, vertex_ids: np.n
 
 # ------------------------------------------------------------------ the methods by name
 def _load_exact(model, s: int, c: int, rank: int, lights):
-    from .relight import to_device_f16
+    from .relight import to_device_words
 
     rf = np.asarray(model.field(s, c).rf)
-    return to_device_f16(rf if lights is None else rf[:, lights])
+    return to_device_words(rf if lights is None else rf[:, lights])
 
 
 def _lit_exact(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):

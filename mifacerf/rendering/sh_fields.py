@@ -95,9 +95,9 @@ def environment_coefficients(env, order: int, n_theta: int = N_THETA) -> np.ndar
 
 # ------------------------------------------------------------------ the method's hooks
 def load_sh(model, s: int, c: int, order: int, lights):
-    from .relight import to_device_f16
+    from .relight import to_device_words
 
-    return to_device_f16(model.compressed_field(s, c, order, "sh")["coeff"])
+    return to_device_words(model.compressed_field(s, c, order, "sh")["coeff"])
 
 
 def lit_sh(data, n_terms: int, texels, vertex_ids, coef, lighting, keep):
