@@ -133,12 +133,14 @@ def create_app(capture: str | Path | Session, token: str, hosts: set[str]) -> St
         from .proposals import propose_expression
 
         name = session.check_expression(request.path_params["name"])
+        await run_in_threadpool(session.require_images, name)
         return _json(await run_in_threadpool(propose_expression, session, name))
 
     async def template_proposal(request):
         from .template_proposal import propose_template
 
         d = await _body(request)
+        await run_in_threadpool(session.require_images, session.neutral)
         res = await run_in_threadpool(propose_template, session)
         if d.get("accept") and res.get("template") is not None:
             await run_in_threadpool(session.save_template, res["template"])
@@ -162,6 +164,9 @@ def create_app(capture: str | Path | Session, token: str, hosts: set[str]) -> St
         name = session.check_expression(request.path_params["name"])
         if session.template() is None:
             raise StudioError("no usable hand/template.json: build or accept a template on the neutral first")
+        await run_in_threadpool(session.require_images, name)
+        if name != session.neutral and session.registered(session.neutral) is None:
+            await run_in_threadpool(session.require_images, session.neutral)
         return _json(jobs.submit(name), 202)
 
     async def job(request):

@@ -114,6 +114,16 @@ class Session:
                     n += 1
         return n
 
+    def require_images(self, name: str) -> None:
+        """Raise :class:`StudioError` (one line) when ``name`` lacks any image (proposals and registration
+        need every view's)."""
+        missing = [self.cap.image_path(name, cam, light) for cam in self.names for light in range(self.cap.n_lights)
+                   if not self.cap.image_path(name, cam, light).exists()]
+        if missing:
+            rel = missing[0].relative_to(self.root) if self.root in missing[0].parents else missing[0]
+            raise StudioError(f"{name}: {len(missing)} image(s) missing (first: {rel}); proposals and registration "
+                              "need every view's images")
+
     def info(self) -> dict:
         tpl = self.template()
         edges = []

@@ -245,6 +245,8 @@ S.clientOffset = (camName, u, v) => {
   return [x * r.width / canvas.width, y * r.height / canvas.height];
 };
 function inside(cam, u, v) { return u >= -0.5 && v >= -0.5 && u <= cam.width - 0.5 && v <= cam.height - 0.5; }
+// a drag that leaves the image stops at its edge (the server refuses a position outside it)
+function clampInside(cam, u, v) { return [Math.max(-0.5, Math.min(cam.width - 0.5, u)), Math.max(-0.5, Math.min(cam.height - 0.5, v))]; }
 
 function vertexUV(camIndex, vid) {
   const g = S.data && S.data.geometry;
@@ -453,10 +455,11 @@ function attachView(canvas, cam) {
   });
   canvas.addEventListener("pointermove", (e) => {
     const [x, y] = eventPos(canvas, e);
-    const [u, v] = toImage(canvas, cam, x, y);
-    hover(canvas, cam, x, y, u, v);
+    const [u0, v0] = toImage(canvas, cam, x, y);
+    hover(canvas, cam, x, y, u0, v0);
     const d = S.drag;
     if (!d) return;
+    const [u, v] = clampInside(cam, u0, v0);
     if (d.kind === "pan") { S.view.ox += x - d.x; S.view.oy += y - d.y; d.x = x; d.y = y; drawAll(); }
     else if (d.kind === "curve" && d.cam === cam.name) { S.state.rotoscope.curves[d.name][d.cam][d.i] = [round3(u), round3(v)]; drawAll(); }
     else if (d.kind === "fix" && d.cam === cam.name) { d.u = u; d.v = v; d.moved = true; drawAll(); }
