@@ -56,7 +56,7 @@ def make_problem(n_vertices=300, n_sources=60, n_frames=10000, seed=0):
 
 def run(n_vertices=300, n_sources=60, n_frames=10000, residual_threshold=2e-5, seed=0, quiet=False,
         threads=None, repeats=3):
-    from ._blas import single_threaded_blas
+    from ..blas import single_threaded_blas
     from .model import BlendModel
     from .reference import vertex_coords, vertex_weights
     from .weights import backend

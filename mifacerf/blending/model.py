@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._blas import single_threaded_blas
+from ..blas import single_threaded_blas
 from .culling import CullingResult, allowed_sources, cull_regions, load_regions
 from .deformation import align_neighbourhoods
 from .delaunay import DUP_TOL, LocalTriangulation, triangulate

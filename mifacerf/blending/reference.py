@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import Delaunay
 
-from ._blas import single_threaded_blas
+from ..blas import single_threaded_blas
 from .delaunay import LocalTriangulation, barycentric_bruteforce, nearest_on_hull
 from ..geometry.horn1987 import horn
 

@@ -1,4 +1,4 @@
-"""Single-threaded BLAS for loops of tiny LAPACK calls.
+"""Single-threaded BLAS for loops of tiny LAPACK calls and small products (blending's fits, a rendered frame).
 
 The fit runs thousands of tiny eigen-problems (60 x 60 Gram matrices, 4 x 4 Horn
 matrices).  A multi-threaded OpenBLAS wakes its thread pool for each of them; on
