@@ -148,16 +148,15 @@ class Subject:
         raster = (rast["tri"], rast["bary"].astype(np.float32), rast["inside"])
         # the static maps are cached in float16, and a freshly built subject uses them rounded the same way,
         # so a process with a cold cache renders bit for bit the subject a process with a warm one does
+        # (SkinTextures rounds the maps it computes to float16 as the cache stores them)
         static = cache.load(cache.key("skin-static", res, float(self.dots_neutral.sum())))
+        self.tex = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
+                                static=static, raster=raster)
         if static is None:
-            static = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
-                                  static=None, raster=raster).static_arrays()
             try:
-                cache.save(cache.key("skin-static", res, float(self.dots_neutral.sum())), **static)
+                cache.save(cache.key("skin-static", res, float(self.dots_neutral.sum())), **self.tex.static_arrays())
             except OSError:
                 pass
-        self.tex = SkinTextures(self.neutral_skin, self.skin_faces, at, res, self.dots_neutral, DOT_RADIUS,
-                                static={k: v.astype(np.float32) for k, v in static.items()}, raster=raster)
 
         # registration template
         from .template import build_template

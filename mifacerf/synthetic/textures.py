@@ -398,8 +398,8 @@ class SkinTextures:
         s /= np.maximum(np.linalg.norm(s, axis=1, keepdims=True), 1e-30)
         t = np.cross(n, s)
         self.frame = (s, t, n)
-        if static is None:
-            static = self._static_maps(dots, dot_radius)
+        if static is None:      # rounded as the cache stores them, so a cold and a warm cache agree bit for bit
+            static = {k: v.astype(np.float16) for k, v in self._static_maps(dots, dot_radius).items()}
         self.albedo = static["albedo"].astype(np.float32)
         self.roughness = static["roughness"].astype(np.float32)
         self.base_slopes = static["slopes"].astype(np.float32)   # (res*res, 2)
