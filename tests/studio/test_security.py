@@ -85,3 +85,34 @@ def test_only_files_inside_the_capture_are_served(capture, studio_capture, clien
     for bad in ["/static/../server.py", "/static/%2e%2e/server.py", "/static/..%2fsession.py"]:
         r = c.get(bad)
         assert r.status_code == 404 and b"import" not in r.content, bad
+
+
+def test_names_in_routes_cannot_reach_outside(capture, client_for):
+    """Expression and camera names come from the manifest: a crafted one in a view, a save or a
+    registration request is refused and writes nothing."""
+    c, tok = client_for(capture)
+    h = {"X-Studio-Token": tok}
+    before = sorted(p.relative_to(capture).as_posix() for p in capture.rglob("*"))
+    for url in ["/api/image/..%2F..%2Fetc/cam0.png", "/api/image/neutral/..%2Fcam0.png",
+                "/api/image/%2Fetc%2Fpasswd/cam0.png", "/api/expression/..%2Fmanifest",
+                "/api/proposals/..%2F..%2Fx"]:
+        r = c.get(url + ("&" if "?" in url else "?") + f"token={tok}")
+        assert r.status_code in (400, 404), url
+    for name in ["..%2F..%2Fevil", "%2Ftmp%2Fevil", "neutral%2F..%2F..%2Fevil"]:
+        r = c.put(f"/api/expression/{name}/hand", headers=h, json={"version": "x", "state": {}})
+        assert r.status_code in (400, 404), name
+        assert c.post(f"/api/register/{name}", headers=h).status_code in (400, 404), name
+    assert sorted(p.relative_to(capture).as_posix() for p in capture.rglob("*")) == before
+
+
+def test_a_cross_site_form_post_without_the_token_is_refused(capture, client_for):
+    """A form another page submits (no custom header possible, so no token; text/plain body) changes nothing."""
+    c, _ = client_for(capture)
+    before = (capture / "hand" / "coarse_points.json").read_bytes()
+    r = c.post("/api/expression/smile/hand", content=b'{"version": "x", "state": {}}',
+               headers={"Content-Type": "text/plain", "Sec-Fetch-Site": "same-site"})
+    assert r.status_code == 401
+    r = c.post("/api/expression/smile/hand", content=b"state=x",
+               headers={"Content-Type": "application/x-www-form-urlencoded", "Origin": "http://127.0.0.1.evil.example"})
+    assert r.status_code == 403
+    assert (capture / "hand" / "coarse_points.json").read_bytes() == before
