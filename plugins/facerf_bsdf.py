@@ -38,6 +38,10 @@ cornea highlight is not part of this response.
      - string — how the divided-out self-visibility is measured: ``cell`` (default: the unblocked share of
        each light's Voronoi cell — agreement with the exact path under environments) or ``ray`` (the ray
        towards the light itself — a directional or point light along a stage light)
+   * - visibility_grid
+     - integer — where inside each triangle the self-visibility is known: a barycentric grid of this order
+       (default 3: 10 points per triangle, traced from the triangle's surface as the shadow rays are;
+       0: at the vertices only, interpolated — the rule before 2026-12-02)
    * - sampling
      - string — ``reflectance`` (default: half the samples by the fields' response per light) or ``cosine``
    * - parts
@@ -108,7 +112,7 @@ class FaceRFBSDF(mi.BSDF):
                 raise ValueError(f"facerf_bsdf: parameter 'visibility_rule': {props['visibility_rule']!r} is not "
                                  f"one of {', '.join(VISIBILITY_RULES)}")
             self.fields["visibility_rule"] = props["visibility_rule"]
-        for key, cast in (("max_slots", int), ("depth_tolerance", float)):   # the Python API's skips, by name
+        for key, cast in (("max_slots", int), ("depth_tolerance", float), ("visibility_grid", int)):
             if key in props:
                 self.fields[key] = cast(props[key])
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)

@@ -19,7 +19,9 @@ without that depth test a texel on camera ``c``'s silhouette, bright with a graz
 blended in where the exact path drops it: the material's 34.4 dB against the exact path), and ``interp`` the
 light-stage rule (:class:`.light_interp.LightInterpolator`, named as the exact path's light basis:
 ``voronoi``, the default — the nearest light, so that an environment is integrated as the exact path
-does — or ``hat``, barycentric between the three lights round the direction). The value is
+does — or ``hat``, barycentric between the three lights round the direction), divided by the source's captured
+self-visibility of that light at the hit (:func:`.self_visibility.triangle_visibility`, a grid inside each
+triangle; ``visibility_grid=0``: the per-vertex values interpolated). The value is
 radiance per unit irradiance — Mitsuba's "BSDF × cosine". Per vertex at most
 ``max_slots`` source expressions (the largest weights) are kept.
 
@@ -35,7 +37,7 @@ from ..variant import ensure_variant
 from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from .light_interp import LightInterpolator
 from .relight import to_device_f16
-from .self_visibility import MIN_VISIBILITY
+from .self_visibility import GRID_ORDER, MIN_VISIBILITY
 from .views import ViewSampler
 
 #: metres: a texel is used for a hit only if the surface its camera saw there lies this close to the hit's
@@ -155,7 +157,8 @@ class MaterialState:
 
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
-                 rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell"):
+                 rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell",
+                 visibility_grid: int = GRID_ORDER):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -184,7 +187,11 @@ class MaterialState:
         self.method, self.rank = method, rank
         self.lights = LightInterpolator(model.light_directions, method=light_basis).to_device()
         self.self_visibility = self_visibility
-        if self_visibility:   # divide the captured self-shadowing out (:mod:`.self_visibility`)
+        self.visibility_rule, self.visibility_grid = visibility_rule, int(visibility_grid)
+        if self.visibility_grid < 0:
+            raise ValueError(f"visibility_grid must be >= 0 (got {visibility_grid})")
+        self._vis_sources: list[int] = []
+        if self_visibility and not self.visibility_grid:   # per vertex, interpolated (before 2026-12-02)
             from .self_visibility import visibility
 
             self.vis_light = to_jit(mi.Float, visibility(model, visibility_rule).reshape(-1))
@@ -221,6 +228,8 @@ class MaterialState:
         self.slot_R = to_jit(mi.Float, rot.reshape(-1))
         if not set(used) <= set(self.uploaded):
             self._upload(sorted(set(self.uploaded) | set(used)))
+        if self.self_visibility and self.visibility_grid and not set(used) <= set(self._vis_sources):
+            self._upload_visibility(sorted(set(self._vis_sources) | set(used)))
         table = np.zeros((T, self.n_lights))
         for k in range(self.K):   # the slots' response per light, blended by the slots' weights
             for s in used:
@@ -261,6 +270,48 @@ class MaterialState:
         self.texel_depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1, np.float32))
         self.uploaded = list(sources)
 
+    def _upload_visibility(self, sources: list[int]) -> None:
+        """The per-triangle grids of captured self-visibility (:func:`.self_visibility.source_triangle_visibility`)
+        of ``sources`` on the device, and each source's first row (``vis_base``, in triangles)."""
+        from .self_visibility import source_triangle_visibility
+
+        mi, model = self.mi, self.model
+        grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid) for s in sources]
+        base = np.zeros(len(model.expressions), np.uint32)
+        for k, s in enumerate(sources):
+            base[s] = k * self.n_triangles
+        self.vis_grid = to_jit(mi.Float, np.concatenate(grids).reshape(-1))
+        self.vis_base = to_jit(mi.UInt32, base)
+        self._vis_sources = list(sources)
+
+    def _grid_corners(self, b):
+        """The visibility grid's corners round barycentrics ``b`` and their weights (linear inside the grid's
+        small triangle; :func:`.self_visibility.grid_barycentrics`): ([3 UInt32 rows], [3 Float weights])."""
+        import drjit as dr
+
+        from .self_visibility import GRID_INSET
+
+        mi = self.mi
+        k = self.visibility_grid
+        x = dr.clip((b[0] - GRID_INSET / 3) * (k / (1 - GRID_INSET)), 0.0, float(k))
+        y = dr.clip((b[1] - GRID_INSET / 3) * (k / (1 - GRID_INSET)), 0.0, float(k))
+        y = dr.minimum(y, k - x)
+        i = dr.minimum(mi.UInt32(dr.floor(x)), k)
+        j = dr.minimum(mi.UInt32(dr.floor(y)), k)
+        over = (i + j) > (k - 1)            # on the far edge: step back into the grid
+        i = dr.select(over & (i > 0), i - 1, i)
+        j = dr.select(over & ~(i > 0) & (j > 0) & ((i + j) > (k - 1)), j - 1, j)
+        fx, fy = x - mi.Float(i), y - mi.Float(j)
+        upper = (fx + fy) > 1
+        k1 = k + 1
+        c0 = dr.select(upper, (i + 1) * k1 + j + 1, i * k1 + j)
+        c1 = dr.select(upper, i * k1 + j + 1, (i + 1) * k1 + j)
+        c2 = dr.select(upper, (i + 1) * k1 + j, i * k1 + j + 1)
+        w0 = dr.select(upper, fx + fy - 1, 1 - fx - fy)
+        w1 = dr.select(upper, 1 - fx, fx)
+        w2 = dr.select(upper, 1 - fy, fy)
+        return [c0, c1, c2], [w0, w1, w2]
+
     def _rows(self, f, s: int, c: int) -> np.ndarray:
         """(N, L, 3) reflectance rows of field (s, c) under this state's compression method: the stored field,
         or (``pca``) reconstructed at upload from the model's ``<method><rank>`` file (device memory is then
@@ -294,6 +345,9 @@ class MaterialState:
         K, C, T, L3 = self.K, self.C, len(self.model.vertices[0]), self.n_lights * 3
         n_pairs = dr.opaque(UInt32, 3 * K)
         tol = dr.opaque(Float, self.depth_tolerance)
+        if self.self_visibility and self.visibility_grid:
+            corners, corner_w = self._grid_corners(b)
+            G = (self.visibility_grid + 1) ** 2
 
         def cond(i, *_):
             return i < n_pairs
@@ -318,11 +372,17 @@ class MaterialState:
             cam_w = [dr.select(use, x, 0.0) for x in cam_w]  # keep NaN from inactive lanes out of sums
             light_w = [dr.select(use, x, 0.0) for x in light_w]
             if self.self_visibility:   # the captured self-visibility of each light, divided out (with the fill)
+                if self.visibility_grid:
+                    row0 = (dr.gather(UInt32, self.vis_base, u, use) + tri) * G
                 for li in range(3):
                     sv = Float(0)
                     for kk in range(3):
-                        sv += b[kk] * dr.gather(Float, self.vis_light, (u * T + vid[kk]) * self.n_lights
-                                                + light_ids[li], use)
+                        if self.visibility_grid:   # the source's grid inside the triangle, at the hit's barycentrics
+                            sv += corner_w[kk] * dr.gather(Float, self.vis_grid, (row0 + corners[kk]) * self.n_lights
+                                                           + light_ids[li], use)
+                        else:
+                            sv += b[kk] * dr.gather(Float, self.vis_light, (u * T + vid[kk]) * self.n_lights
+                                                    + light_ids[li], use)
                     light_w[li] = light_w[li] * dr.select(sv >= MIN_VISIBILITY, dr.rcp(sv), 1.0)
             ps = [Float(0), Float(0), Float(0)]
             for kk in range(3):

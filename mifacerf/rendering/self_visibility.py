@@ -28,6 +28,15 @@ rays block every direction the field answers, so the light the capture saw there
 and subsurface light inside the shadow) is lost — a limit of shadow-ray integrators with fields that
 already hold their shadows (0.8 % of the tiny preset face's mean under the interior environment).
 
+Inside the triangles (``triangle_visibility``, what the material uses since 2026-12-02): the same shares at
+a barycentric grid of points on every triangle (:data:`GRID_ORDER` 3: 10 points), traced from the
+triangle's surface with its geometric normal as Mitsuba spawns its shadow rays, interpolated linearly
+at the hit. On the coarse template the per-vertex values miss what happens inside a triangle (a crease's
+vertices are shadowed where its interior is not; a facet tilted away from the light blocks it where its
+vertices, with their averaged normals, see it): on the draft model the per-vertex rule scored 29.4 dB
+against the exact path, the grid 33.2 dB (docs/rendering.md). Computed per source expression when a
+material first uses it (about 10 s per source of the draft model on the shared cores).
+
 Computed at load, once per model (in memory, keyed by the model folder and its manifest's
 modification time; nothing is written to the model folder).
 """
@@ -127,4 +136,107 @@ def visibility(model, rule: str = "cell") -> np.ndarray:
             how = cell_visibility if rule == "cell" else trace
             _CACHE[key] = np.stack([how(model.vertices[s], model.triangles, model.light_directions)
                                     for s in range(len(model.expressions))])
+        return _CACHE[key]
+
+
+# ---------------------------------------------------------------- inside the triangles
+#: order ``k`` of the per-triangle grid of :func:`triangle_visibility`: points at barycentrics (i/k, j/k, 1 − (i+j)/k)
+GRID_ORDER = 3
+#: the grid points are pulled this share of the way towards the triangle's centroid (rays from a point on an edge
+#: would graze the neighbouring triangle)
+GRID_INSET = 0.05
+
+
+def grid_barycentrics(order: int = GRID_ORDER) -> np.ndarray:
+    """((order+1)², 3) barycentrics of the grid points in square storage (row ``i * (order+1) + j`` is grid point
+    (i, j), i + j ≤ order; the other rows, i + j > order, are never read and hold the centroid), inset by
+    :data:`GRID_INSET` towards the centroid."""
+    k = int(order)
+    ij = np.array([(i, j) for i in range(k + 1) for j in range(k + 1)], np.float64)
+    b = np.stack([ij[:, 0] / k, ij[:, 1] / k, 1 - ij.sum(1) / k], 1)
+    b[ij.sum(1) > k] = 1 / 3
+    return (1 - GRID_INSET) * b + GRID_INSET / 3
+
+
+def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: int = 1 << 21) -> np.ndarray:
+    """(N, D) bool: a ray from each point towards each direction escapes the mesh. The origin is offset along
+    the point's (geometric) normal to the side the ray leaves by, as Mitsuba spawns its shadow rays, so a
+    direction below the triangle's plane is blocked by the surface itself (as under Mitsuba's integrators)."""
+    from ..jitarrays import to_jit
+    from ..variant import ensure_variant
+
+    mi = ensure_variant()
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(triangles, np.int64).reshape(-1, 3)
+    mesh = mi.Mesh("self", len(V), len(F))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = to_jit(mi.Float, V.reshape(-1).astype(np.float32))
+    params["faces"] = to_jit(mi.UInt32, F.reshape(-1).astype(np.uint32))
+    params.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    scale = float(np.linalg.norm(V.max(0) - V.min(0))) or 1.0
+    eps = 1e-4 * scale
+    O, N, D = (np.asarray(x, np.float64) for x in (origins, normals, directions))
+    out = np.zeros((len(O), len(D)), bool)
+    step = max(1, chunk_rays // len(D))
+    for a in range(0, len(O), step):
+        o, n = O[a:a + step], N[a:a + step]
+        side = np.sign(n @ D.T)                                            # (n, D): +1 above the plane
+        side[side == 0] = 1
+        oo = (o[:, None, :] + side[..., None] * n[:, None, :] * eps).reshape(-1, 3).astype(np.float32)
+        dd = np.broadcast_to(D[None], (len(o), len(D), 3)).reshape(-1, 3).astype(np.float32)
+        hit = scene.ray_test(mi.Ray3f(mi.Point3f(oo.T), mi.Vector3f(dd.T)))
+        out[a:a + step] = ~np.asarray(hit, bool).reshape(len(o), len(D))
+    return out
+
+
+def triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
+                        n: int = CELL_SAMPLES) -> np.ndarray:
+    """(F, (order+1)², L) float32: the self-visibility of each light (``rule`` as :func:`visibility`) at the
+    grid points of every triangle (:func:`grid_barycentrics`), traced from the point on the triangle with its
+    geometric normal — what the integrator's shadow rays from a hit there let through.
+
+    The per-vertex values (:func:`cell_visibility`) interpolated across a triangle of a coarse template miss
+    what happens inside it: in a crease (under the lower lip) the vertices sit in the fold, their cells
+    mostly blocked (v ≈ 0.2), while the triangle's interior sees the frontal lights freely — the material's
+    division by the interpolated v made those pixels 3–4× too bright (draft model, docs/rendering.md)."""
+    if rule not in VISIBILITY_RULES:
+        raise ValueError(f"self-visibility rule {rule!r} is not one of {', '.join(VISIBILITY_RULES)}")
+    V = np.asarray(vertices, np.float64)
+    F = np.asarray(triangles, np.int64).reshape(-1, 3)
+    Ld = np.asarray(directions, np.float64)
+    B = grid_barycentrics(order)
+    k = int(order)
+    ij = np.array([(i, j) for i in range(k + 1) for j in range(k + 1)])
+    valid = ij.sum(1) <= k
+    P = np.einsum("gk,fkd->fgd", B[valid], V[F])                       # (F, Pv, 3)
+    nrm = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+    Nn = np.repeat(nrm[:, None], valid.sum(), 1)
+    if rule == "ray":
+        vis = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld).astype(np.float32)
+    else:
+        samples, cell = cell_directions(Ld, n)
+        free = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), samples).astype(np.float32)
+        count = np.bincount(cell, minlength=len(Ld)).astype(np.float64)
+        onehot = np.zeros((len(samples), len(Ld)), np.float32)
+        onehot[np.arange(len(samples)), cell] = 1
+        vis = free @ onehot
+        empty = count == 0
+        vis[:, ~empty] /= count[~empty]
+        if empty.any():
+            vis[:, empty] = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld[empty]).astype(np.float32)
+    out = np.ones((len(F), len(B), len(Ld)), np.float32)
+    out[:, valid] = vis.reshape(len(F), valid.sum(), len(Ld))
+    return out
+
+
+def source_triangle_visibility(model, source: int, rule: str = "cell", order: int = GRID_ORDER) -> np.ndarray:
+    """:func:`triangle_visibility` of source expression ``source`` of ``model`` against its registered mesh
+    (cached in memory per model folder, source, rule and order; computed when a material first uses it)."""
+    key = (_key(model), "grid", int(source), rule, int(order))
+    with _LOCK:
+        if key not in _CACHE:
+            _CACHE[key] = triangle_visibility(model.vertices[source], model.triangles, model.light_directions,
+                                              rule, order)
         return _CACHE[key]

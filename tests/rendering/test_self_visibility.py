@@ -128,3 +128,58 @@ def test_mifacerf_evaluate_material_prints_the_table(toy_model):
                                             "--spp", "4", "--integrators", "direct"])
     assert r.exit_code == 0, r.output
     assert "| direct | 2 x 4 |" in r.output and "facerf (exact)" in r.output
+
+
+def test_triangle_visibility_follows_each_triangles_plane(mi):
+    """Inside each triangle of a sphere (the grid of points traced from its surface, as shadow rays are), a light
+    is seen iff it lies in front of the triangle's plane (away from grazing); rows with i + j > order hold 1."""
+    from mifacerf.rendering.self_visibility import grid_barycentrics, triangle_visibility
+
+    V, F = _sphere(200)
+    rng = np.random.default_rng(2)
+    D = rng.normal(size=(12, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    vis = triangle_visibility(V, F, D, rule="ray", order=2)
+    B = grid_barycentrics(2)
+    assert vis.shape == (len(F), 9, len(D)) and B.shape == (9, 3)
+    np.testing.assert_allclose(B.sum(1), 1.0)
+    ij = np.array([(i, j) for i in range(3) for j in range(3)])
+    valid = ij.sum(1) <= 2
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    cos = np.repeat((n @ D.T)[:, None], valid.sum(), 1)
+    v = vis[:, valid]
+    assert (v[cos > 0.15] == 1).all() and (v[cos < -0.05] == 0).all()
+    assert (vis[:, ~valid] == 1).all()
+    cell = triangle_visibility(V, F, D, rule="cell", order=1, n=1024)
+    assert ((cell >= 0) & (cell <= 1)).all()
+
+
+def test_the_grid_interpolation_lands_on_its_points(mi):
+    """MaterialState's lookup of the grid (corners and weights at barycentrics b) gives weight 1 to the grid point
+    at b, and weights that sum to 1 and reproduce b linearly in between."""
+    import types
+
+    from mifacerf.rendering.material import MaterialState
+    from mifacerf.rendering.self_visibility import grid_barycentrics
+
+    k = 3
+    stub = types.SimpleNamespace(mi=mi, visibility_grid=k)
+    B = grid_barycentrics(k)
+    ij = np.array([(i, j) for i in range(k + 1) for j in range(k + 1)])
+    valid = np.flatnonzero(ij.sum(1) <= k)
+    rng = np.random.default_rng(3)
+    mid = rng.dirichlet([1, 1, 1], 50)
+    b = np.concatenate([B[valid], mid])
+    corners, weights = MaterialState._grid_corners(stub, [mi.Float(b[:, 0]), mi.Float(b[:, 1]), mi.Float(b[:, 2])])
+    c = np.stack([np.asarray(x) for x in corners], 1)
+    w = np.stack([np.asarray(x) for x in weights], 1)
+    np.testing.assert_allclose(w.sum(1), 1.0, atol=1e-5)
+    assert (ij[c].sum(-1) <= k).all()                              # only points of the grid
+    n = len(valid)
+    picked = np.take_along_axis(c, np.argmax(w, 1)[:, None], 1)[:n, 0]
+    np.testing.assert_array_equal(picked, valid)
+    np.testing.assert_allclose(w[:n].max(1), 1.0, atol=1e-4)
+    inside = mid.min(1) > 0.06                                    # inside the inset grid: linear reproduction
+    rec = np.einsum("nc,ncd->nd", w[n:], B[c[n:]])
+    np.testing.assert_allclose(rec[inside], mid[inside], atol=1e-4)
