@@ -145,6 +145,7 @@ def worker(job_path: str, config: str) -> None:
 
         frames = sequence_frames(job["frames"], int(job.get("sequence_frames", 120)))
         face.renderer.cache_frames = True              # as mifacerf drive renders
+        history_was = dr.flag(dr.JitFlag.KernelHistory)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         history = []
     times, stages = [], []
@@ -173,6 +174,8 @@ def worker(job_path: str, config: str) -> None:
     timing = {"seconds": times, "stages": stages, "peak_bytes": vm_hwm(), "median_seconds": float(np.median(times))}
     if history is not None:
         timing["compiled_after_first"] = int(sum(history[1:]))
+        dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, history_was)   # as it was (a worker run in the caller's process)
     (out / "timing.json").write_text(json.dumps(timing))
 
 
@@ -207,15 +210,38 @@ def config_unit(job_path: str, cfg: str) -> dict:
     returns its ``timing.json``."""
     subprocess.run([sys.executable, "-m", "mifacerf.evaluation.bench", str(job_path), cfg], check=True,
                    env={**os.environ})
+    return _timing(job_path, cfg)
+
+
+def config_here(job_path: str, cfg: str) -> dict:
+    """:func:`config_unit` in this process (``run(processes=False)``): no process start per configuration;
+    the peak memory is this process's. ``cold`` still starts its fresh process (that is what it measures)."""
+    if cfg == "cold":
+        return config_unit(job_path, cfg)
+    worker(job_path, cfg)
+    return _timing(job_path, cfg)
+
+
+def _timing(job_path: str, cfg: str) -> dict:
     return json.loads((Path(json.loads(Path(job_path).read_text())["out"]) / cfg.replace("/", "_") /
                        "timing.json").read_text())
 
 
+#: ``--quick``'s sequence row: this many frames (the full row: ``sequence_frames``, the demo's 120)
+QUICK_SEQUENCE_FRAMES = 12
+
+
 def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "sky", spp: int = 1,
         spp_truth: int = 1024, seed: int = 7, quick: bool = False, progress: bool = True, executor=None,
-        sequence_frames: int = 120, sweep=SWEEP_SIZES) -> dict:
+        sequence_frames: int = 120, sweep=SWEEP_SIZES, only=None, processes: bool = True) -> dict:
     """Run the benchmark (``progress``: bars over the truths and the configurations); returns the results
     (also written to ``out``).
+
+    ``quick``: dense, exact, the first compressed rank, the cold start and a sequence of
+    :data:`QUICK_SEQUENCE_FRAMES` frames. ``only``: the configurations to run (names of :func:`configs`, in
+    its order; ``dense`` and ``exact`` always run, every row is measured against them). ``processes``: each
+    configuration in a fresh worker process (the default: its peak memory is its own); False runs them in
+    this process (:func:`config_here`; a quick check of the benchmark itself, e.g. its smoke test).
 
     ``executor`` (:mod:`mifacerf.execution`; default: this process) runs the ground-truth frames and the
     configurations as units. Configurations run at once on one machine share its cores: their times are
@@ -229,6 +255,12 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     face = load_model(model)
+    cfgs = configs(face.model.meta, quick, sweep)
+    if only is not None:
+        unknown = sorted(set(only) - set(cfgs))
+        if unknown:
+            raise ValueError(f"unknown bench configuration(s) {', '.join(unknown)}; this model has {', '.join(cfgs)}")
+        cfgs = [c for c in cfgs if c in {"dense", "exact", *only}]
     fr = frames(face.model, n_frames, seed, size)
     tr = TruthRenderer.from_synth(synth_out)
     ex = executor or Executor()
@@ -238,13 +270,15 @@ def run(model, synth_out, out, n_frames: int = 3, size: int = 256, env: str = "s
     truths, masks = [t for t, _ in done], [m for _, m in done]
     n_str = int(json.loads((Path(synth_out) / "capture" / "manifest.json").read_text())["rig"]["lights"]
                 ["layout"]["n_strobes"])
+    if quick:
+        sequence_frames = min(int(sequence_frames), QUICK_SEQUENCE_FRAMES)
     job = {"model": str(Path(model).resolve()), "frames": fr, "size": size, "env": env, "spp": spp,
            "out": str(out.resolve()), "n_strobes": n_str, "sequence_frames": int(sequence_frames)}
     job_path = out / "job.json"
     job_path.write_text(json.dumps(job))
-    cfgs = configs(face.model.meta, quick, sweep)
     results = []
-    timings = ex.imap(config_unit, cfgs, str(job_path), desc="configurations", unit="config", progress=progress)
+    timings = ex.imap(config_unit if processes else config_here, cfgs, str(job_path), desc="configurations",
+                      unit="config", progress=progress)
     for cfg, timing in zip(cfgs, timings):
         results.append({"config": cfg, "seconds_per_frame": float(np.mean(timing["seconds"])),
                         "peak_bytes": timing["peak_bytes"], "disk_bytes": disk_bytes(Path(model), cfg),
