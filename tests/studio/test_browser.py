@@ -184,6 +184,83 @@ def test_page_shows_every_view_and_the_registration(browser, served):
     _shot(d, "page")
 
 
+def _canvas_digest(d, cam):
+    return d.execute_script("const c = document.getElementById('canvas-' + arguments[0]);"
+                            "const a = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+                            "let h = 0; for (let i = 0; i < a.length; i += 7) h = (h * 31 + a[i]) >>> 0; return h;", cam)
+
+
+def _offsets(d, u, v):
+    """Where image point (u, v) is drawn in each view, as a fraction of the view's width and height."""
+    return {c: d.execute_script("const o = studio.clientOffset(arguments[0], arguments[1], arguments[2]);"
+                                "const r = document.getElementById('canvas-' + arguments[0]).getBoundingClientRect();"
+                                "return [o[0] / r.width, o[1] / r.height]", c, u, v)
+            for c in ("cam0", "cam1", "cam2")}
+
+
+def test_views_zoom_and_pan_together_tone_and_overlays_and_clicks_outside(browser, served):
+    """The wheel in one view zooms every view, a drag pans them all; exposure and gamma reload the
+    views; each overlay checkbox changes what is drawn (and back); a click outside the image is ignored
+    and a mark placed and undone leaves the file as it was."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.actions.wheel_input import ScrollOrigin
+    from selenium.webdriver.common.keys import Keys
+
+    d = browser
+    _open(d, served)
+    before = _offsets(d, 64, 64)
+    ActionChains(d).scroll_from_origin(ScrollOrigin.from_element(d.find_element("id", "canvas-cam1"), 30, 10),
+                                       0, -300).perform()
+    _wait(d, "return studio.view.zoom > 1.2", what="the zoom")
+    zoomed = _offsets(d, 64, 64)
+    assert zoomed["cam0"] != before["cam0"]
+    assert all(np.allclose(zoomed[c], zoomed["cam1"]) for c in zoomed)       # every view the same transform
+    _tool(d, "navigate")
+    _click(d, "cam2", 64, 64, drag_to=(60, 60))
+    panned = _offsets(d, 64, 64)
+    assert panned["cam0"] != zoomed["cam0"] and all(np.allclose(panned[c], panned["cam2"]) for c in panned)
+    d.find_element("id", "reset-view").click()
+    assert np.allclose(_offsets(d, 64, 64)["cam0"], before["cam0"])
+    # tone mapping: the keyboard on the sliders, the views reloaded with the new exposure and gamma
+    d.find_element("id", "exposure").send_keys(Keys.ARROW_RIGHT * 4)
+    _wait(d, "return Object.values(studio.images).every(i => i && i.src.includes('exposure=1&'))", what="exposure")
+    d.find_element("id", "gamma").send_keys(Keys.ARROW_LEFT * 2)
+    g = d.execute_script("return document.getElementById('gamma').value")
+    assert float(g) == 2.0
+    _wait(d, f"return Object.values(studio.images).every(i => i && i.src.includes('gamma={g}&'))",
+          what=f"gamma {g}: {d.execute_script('return Object.values(studio.images).map(i => i.src)')}")
+    # overlays: off changes the picture, on brings it back
+    _wait(d, "return Object.values(studio.images).every(i => i && i.complete)", what="the images")
+    d.execute_script("drawAll()")
+    for ov in ("ov-fiducials", "ov-coarse", "ov-wireframe"):
+        h0 = _canvas_digest(d, "cam1")
+        d.find_element("id", ov).click()
+        h1 = _canvas_digest(d, "cam1")
+        d.find_element("id", ov).click()
+        assert h1 != h0 and _canvas_digest(d, "cam1") == h0, ov
+    # zoomed out, a click outside the image is ignored; a mark placed and undone
+    ActionChains(d).scroll_from_origin(ScrollOrigin.from_element(d.find_element("id", "canvas-cam0"), 0, 0),
+                                       0, 600).perform()
+    _wait(d, "return studio.view.zoom < 0.8", what="zooming out")
+    rot_path = served.capture / "hand" / "rotoscope" / "neutral.json"
+    rot0 = rot_path.read_bytes()
+    _tool(d, "point")
+    _select(d, "point-select", "lower_teeth")
+    _click(d, "cam0", -8, 20)
+    _wait(d, "return document.getElementById('save-status').textContent.includes('outside the image')",
+          what="the click to be refused")
+    assert d.execute_script("return studio.state.rotoscope.points.lower_teeth === undefined || "
+                            "studio.state.rotoscope.points.lower_teeth.cam0 === undefined")
+    assert rot_path.read_bytes() == rot0
+    _click(d, "cam0", 60, 85)
+    _idle(d)
+    assert "lower_teeth" in json.loads(rot_path.read_text())["points"]
+    d.find_element("id", "undo").click()
+    _idle(d)
+    assert "lower_teeth" not in json.loads(rot_path.read_text())["points"]
+    _shot(d, "views")
+
+
 def test_coarse_point_in_two_views_is_triangulated(browser, served):
     from mifacerf.formats.capture import Capture
     from mifacerf.studio.session import Session

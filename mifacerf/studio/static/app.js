@@ -216,9 +216,12 @@ async function loadExpression() {
 function loadImages() {
   for (const cam of S.info.cameras) {
     const img = new Image();
-    img.onload = () => { S.images[cam.name] = img; drawView(cam.name); };
-    img.onerror = () => { S.images[cam.name] = null; drawView(cam.name); };
-    img.src = imageUrl(cam.name);
+    const url = imageUrl(cam.name);
+    // only the latest request counts: an earlier, slower answer (the slider moved on) is dropped
+    const latest = () => imageUrl(cam.name) === url;
+    img.onload = () => { if (latest()) { S.images[cam.name] = img; drawView(cam.name); } };
+    img.onerror = () => { if (latest()) { S.images[cam.name] = null; drawView(cam.name); } };
+    img.src = url;
   }
 }
 
