@@ -203,7 +203,7 @@ def _load_exact(model, s: int, c: int, rank: int, lights):
 def _lit_exact(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
     from .relight import lit_texels
 
-    return lit_texels(data, n_lights, texels, vertex_ids, coef, lighting, keep)
+    return lit_texels(data, n_lights, texels, vertex_ids, coef, lighting, keep, later=True)
 
 
 def _load_pca(model, s: int, c: int, rank: int, lights):
@@ -236,7 +236,8 @@ class CompressionMethod:
       (device arrays; ``lights`` a light subset or None);
     * ``lit(data, n_lights, texels (N,), vertex_ids (N, 3), coef (N, 3), lighting (V, L, 3), keep) -> (N, 3)``:
       the lit colour of ``texels`` under the per-vertex light-stage weights ``lighting`` (``keep``: the
-      lights kept, None for all);
+      lights kept, None for all), or a function returning it (a launched kernel, read back when called: the
+      renderer launches every chunk's kernel before it reads the first);
     * ``light_subsets``: whether ``load`` accepts a light subset;
     * ``lighting(renderer, env, rotations (P, 3, 3)) -> (P, K, 3)``: the per-(vertex, source) lighting
       ``lit`` takes, when it is not the light stage's rotated basis (:mod:`.lighting`, None): ``sh``

@@ -60,8 +60,10 @@ def half_to_float(h):
 
 
 def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndarray, coef: np.ndarray,
-               lighting: np.ndarray, light_ids: np.ndarray | None = None) -> np.ndarray:
-    """Lit colour (N, 3) of ``texels`` (N,) rows of a field.
+               lighting: np.ndarray, light_ids: np.ndarray | None = None, later: bool = False):
+    """Lit colour (N, 3) of ``texels`` (N,) rows of a field; ``later``: the kernel is launched and a
+    function returned that reads its result back (so a caller can launch every chunk's kernel before
+    waiting for the first: Dr.Jit's LLVM kernels run asynchronously until read).
 
     ``rf_device``: the field's (rows, L, 3) reflectance functions as :class:`HalfWords`
     (:func:`to_device_words`, the fast form) or a flat Dr.Jit Float16 array (:func:`to_device_f16`);
@@ -76,7 +78,8 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     mi = ensure_variant()
     n = len(texels)
     if n == 0:
-        return np.zeros((0, 3), np.float32)
+        empty = np.zeros((0, 3), np.float32)
+        return (lambda: empty) if later else empty
     Float, UInt32 = mi.Float, mi.UInt32
     ids = np.arange(n_lights) if light_ids is None else np.asarray(light_ids)
     k = len(ids)
@@ -144,4 +147,8 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     state = (dr.opaque(UInt32, 0, n), dr.opaque(Float, 0, n), dr.opaque(Float, 0, n), dr.opaque(Float, 0, n))
     _, r, g, b = dr.while_loop(state, cond, body)
     dr.eval(r, g, b)  # one kernel for all three channels
-    return np.stack([np.asarray(r), np.asarray(g), np.asarray(b)], axis=1)
+
+    def result() -> np.ndarray:
+        return np.stack([np.asarray(r), np.asarray(g), np.asarray(b)], axis=1)
+
+    return result if later else result()

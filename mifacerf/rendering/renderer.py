@@ -196,17 +196,22 @@ class Renderer:
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
             coef = wt[active] / wsum_t[active, None]
+            # launched now, read back below: the chunks' kernels run while the next ones are prepared
             lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
             cam = model.cameras[c]
-            img = np.zeros((cam.height, cam.width, 4), np.float32)
-            px = f.pixels[active]
-            img[px[:, 0], px[:, 1], :3] = lit
-            img[px[:, 0], px[:, 1], 3] = 1.0
-            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback, "image": img,
-                           "depth": f.depth_map(), "camera": cam})
+            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback, "image": lit,
+                           "pixels": f.pixels[active], "depth": f.depth_map(), "camera": cam})
             stats.chunks += 1
             stats.texels += len(active)
             stats.add_time("relight", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        for ch in chunks:
+            lit, px, cam = ch["image"], ch.pop("pixels"), ch["camera"]
+            img = np.zeros((cam.height, cam.width, 4), np.float32)
+            img[px[:, 0], px[:, 1], :3] = lit() if callable(lit) else lit
+            img[px[:, 0], px[:, 1], 3] = 1.0
+            ch["image"] = img
+        stats.add_time("relight", time.perf_counter() - t0)
         sources = {s: model.vertices[s] for s in plan.sources}
         return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance)
 

@@ -103,7 +103,7 @@ def load_sh(model, s: int, c: int, order: int, lights):
 def lit_sh(data, n_terms: int, texels, vertex_ids, coef, lighting, keep):
     from .relight import lit_texels
 
-    return lit_texels(data, lighting.shape[1], texels, vertex_ids, coef, lighting)
+    return lit_texels(data, lighting.shape[1], texels, vertex_ids, coef, lighting, later=True)
 
 
 def lighting_sh(renderer, env, rotations: np.ndarray) -> np.ndarray:
