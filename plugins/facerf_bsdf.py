@@ -20,8 +20,9 @@ fields already hold its self-shadowing; ``self_visibility`` (default on) divides
 self-visibility out where it is known (measured in docs/rendering.md). Eyes, teeth and mouth
 interior (the labelled part triangles of a ``facerf_face`` shape) answer each light direction from their
 reference expression's part fields (:class:`mifacerf.rendering.parts.PartMaterial`), their visibility
-(lids, lips, other objects) from the integrator's shadow rays; the integrator's re-synthesised glossy
-cornea highlight is not part of this response.
+(lids, lips, other objects) from the integrator's shadow rays; the eyes add the integrator's glossy cornea
+highlight as a lobe about the mirror direction (``PartMaterial.cornea``), a share ``P_CORNEA`` of their
+samples drawn from it.
 
 .. list-table::
    * - model
@@ -68,6 +69,8 @@ import drjit as dr  # noqa: E402
 P_COSINE = 0.9
 #: with sampling="reflectance": the share of samples drawn from the cosine + uniform mixture (the rest by reflectance)
 P_MIX_COSINE = 0.5
+#: on the eyes: the share of the samples drawn from the cornea lobe (:meth:`PartMaterial.sample_cornea`)
+P_CORNEA = 0.3
 SAMPLING = ("reflectance", "cosine")
 
 
@@ -168,15 +171,32 @@ class FaceRFBSDF(mi.BSDF):
     def _by_reflectance(self) -> bool:
         return self.sampling == "reflectance" and self.state is not None
 
+    def _on_eye(self, si, active=True):
+        """(hit on an eye (Bool), its part index): eye hits draw a share :data:`P_CORNEA` from the cornea lobe."""
+        if self.parts is None:
+            return mi.Bool(False), mi.UInt32(0)
+        on_part = mi.Bool(active) & (si.prim_index >= self.n_skin_triangles)
+        part = dr.gather(mi.UInt32, self.label, si.prim_index, on_part) - 1
+        return on_part & (part < 2), part
+
     def _pdf_local(self, si, wo, active=True):
         pdf = self._pdf_cosine(wo)
         if self._by_reflectance():
             v = self.state.nearest_vertex(si.prim_index, si.p, active)
             light = self.state.sampling.pdf(v, si.to_world(wo), active)
             pdf = P_MIX_COSINE * pdf + (1 - P_MIX_COSINE) * light
+        if self.parts is not None:
+            eye, part = self._on_eye(si, active)
+            lobe = self.parts.cornea_pdf(part, si.p, si.to_world(si.wi), si.to_world(wo), eye)
+            pdf = dr.select(eye, P_CORNEA * lobe + (1 - P_CORNEA) * pdf, pdf)
         return pdf
 
     def sample(self, ctx, si, sample1, sample2, active=True):
+        if self.parts is not None:   # eyes: a share P_CORNEA of the samples from the cornea lobe, the rest as below
+            eye, part = self._on_eye(si, active)
+            lobe = eye & (sample1 < P_CORNEA)
+            sample1 = dr.select(eye, dr.select(lobe, sample1 / P_CORNEA, (sample1 - P_CORNEA) / (1 - P_CORNEA)),
+                                sample1)
         u = sample1
         if self._by_reflectance():   # a share P_MIX_COSINE of the samples from the cosine mixture, the rest by reflectance
             by_light = sample1 >= P_MIX_COSINE
@@ -187,6 +207,9 @@ class FaceRFBSDF(mi.BSDF):
         if self._by_reflectance():
             v = self.state.nearest_vertex(si.prim_index, si.p, active)
             wo = dr.select(by_light, si.to_local(self.state.sampling.sample(v, u, sample2, active)), wo)
+        if self.parts is not None:
+            wo_lobe = self.parts.sample_cornea(part, si.p, si.to_world(si.wi), sample2, lobe)
+            wo = dr.select(lobe, si.to_local(wo_lobe), wo)
         bs = dr.zeros(mi.BSDFSample3f)
         bs.wo = wo
         bs.pdf = self._pdf_local(si, wo, active)
@@ -219,7 +242,8 @@ class FaceRFBSDF(mi.BSDF):
         value = self.state.evaluate(si.prim_index, si.p, view, light, ok)
         if self.parts is not None:   # eyes, teeth and mouth interior (labelled triangles after the skin's)
             part = dr.gather(mi.UInt32, self.label, si.prim_index, on_part) - 1
-            value = dr.select(on_part, self.parts.evaluate(part, si.p, view, light, on_part), value)
+            diffuse = self.parts.evaluate(part, si.p, view, light, on_part)
+            value = dr.select(on_part, diffuse + self.parts.cornea(part, si.p, view, light, on_part), value)
             ok |= on_part
         return dr.select(ok & dr.isfinite(value.x + value.y + value.z), value, 0.0)
 

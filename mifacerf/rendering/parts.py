@@ -45,6 +45,10 @@ PARTS = ("eye_left", "eye_right", "teeth_upper", "teeth_lower", "mouth_interior"
 #: the parts rendered from each reference expression
 GROUPS = {"eyes": ("eye_left", "eye_right"), "teeth": ("teeth_upper", "teeth_lower"), "mouth": ("mouth_interior",)}
 CORNEA_F0 = 0.025  # (n − 1)² / (n + 1)² for the cornea, n ≈ 1.376
+#: the material's cornea lobe: a von Mises–Fisher lobe about the mirror direction, κ = 1 / σ² with σ the blur of
+#: the exact path's pre-filtered environment (:func:`.lighting.prefilter`, 0.5 π / 96 rad), so that the lobe
+#: integrated against an environment gives the exact path's ``F_schlick(n·v) · E_blur(reflect(−v, n))``
+CORNEA_KAPPA = 1.0 / (0.5 * np.pi / 96) ** 2
 
 
 def sphere_mesh(centre, radius: float, subdivisions: int = 3):
@@ -368,8 +372,10 @@ class PartMaterial:
     :class:`PartFrame`) and ``interp`` the material's light rule. The visibility ``V_l`` of §6.3 — lids
     over the eyes, lips over the teeth, other objects — is the integrator's shadow ray. The reference of
     each part is chosen per pose as the exact path's (:func:`frame_reference`). The re-synthesised glossy
-    cornea highlight of :class:`PartFrame` is not part of this diffuse response (the stored eye fields
-    have their sharp highlights removed, so eyes under the material lack it).
+    cornea highlight of :class:`PartFrame` is a glossy lobe of the eyes (:meth:`cornea`, sampled by
+    :meth:`sample_cornea`): ``F_schlick(n·ω_o) · vMF(ω_i; reflect(−ω_o, n), CORNEA_KAPPA)`` with ``n`` the
+    eye sphere's normal, its visibility again the shadow ray's (before 2026-12-02 the eyes lacked it: the
+    stored eye fields have their sharp highlights removed).
 
     ``model``: :class:`~.model.Model`; ``lights``: a :class:`.light_interp.LightInterpolator` (on the device).
     """
@@ -390,6 +396,7 @@ class PartMaterial:
         self.chosen: dict = {}
         self.uploaded_key = None
         self.table = to_jit(mi.Float, np.zeros(len(PARTS) * 12))
+        self.eye_centre = to_jit(mi.Float, np.zeros(len(PARTS) * 3))
         self._empty()
 
     def _empty(self) -> None:
@@ -417,6 +424,12 @@ class PartMaterial:
             tab[PARTS.index(p)] = (placed[p][1] @ np.linalg.inv(np.asarray(parts[p], np.float64)))[:3, :4].reshape(-1)
         mi = self.mi
         self.table = to_jit(mi.Float, tab.reshape(-1))
+        centres = np.zeros((len(PARTS), 3))
+        for p in ("eye_left", "eye_right"):   # the target's eye centres (world): the cornea's normals
+            if p in parts and p in (model.template.get("eyes") or {}):
+                T = np.asarray(parts[p], np.float64)
+                centres[PARTS.index(p)] = T[:3, :3] @ np.asarray(model.template["eyes"][p]["centre"]) + T[:3, 3]
+        self.eye_centre = to_jit(mi.Float, centres.reshape(-1))
         key = tuple(sorted(chosen.items()))
         if key != self.uploaded_key:
             self._upload(chosen)
@@ -516,6 +529,62 @@ class PartMaterial:
             wsum += dr.select(good, wc, 0.0)
         inv = dr.select(wsum > 1e-9, dr.rcp(wsum), 0.0)
         return mi.Color3f(out[0] * inv, out[1] * inv, out[2] * inv)
+
+    # ---------------------------------------------------------- the cornea
+    def _mirror(self, part, p, view, active):
+        """(is an eye, the Fresnel weight F_schlick(n·ω_o), the mirror direction reflect(−ω_o, n)) at eye hits."""
+        import drjit as dr
+
+        mi = self.mi
+        eye = mi.Bool(active) & (part < 2)
+        c = mi.Point3f(*[dr.gather(mi.Float, self.eye_centre, part * 3 + d, eye) for d in range(3)])
+        n = dr.normalize(p - c)
+        cos = dr.dot(n, view)
+        fresnel = CORNEA_F0 + (1 - CORNEA_F0) * (1 - dr.clip(cos, 0.0, 1.0)) ** 5
+        return eye & (cos > 0), fresnel, 2 * cos * n - view
+
+    def cornea(self, part, p, view, light, active=True):
+        """The cornea lobe's value (Float, the same in every channel; 0 off the eyes) for light direction ``light``."""
+        import drjit as dr
+
+        eye, fresnel, mirror = self._mirror(part, p, view, active)
+        return dr.select(eye, fresnel * vmf_pdf(mirror, light, CORNEA_KAPPA), 0.0)
+
+    def cornea_pdf(self, part, p, view, light, active=True):
+        """Density (solid angle) of :meth:`sample_cornea` at ``light`` (0 off the eyes)."""
+        import drjit as dr
+
+        eye, _, mirror = self._mirror(part, p, view, active)
+        return dr.select(eye, vmf_pdf(mirror, light, CORNEA_KAPPA), 0.0)
+
+    def sample_cornea(self, part, p, view, u2, active=True):
+        """World directions drawn from the cornea lobe about the mirror direction (``u2``: Point2f)."""
+        _, _, mirror = self._mirror(part, p, view, active)
+        return vmf_sample(mirror, u2, CORNEA_KAPPA)
+
+
+def vmf_pdf(mean, d, kappa: float):
+    """von Mises–Fisher density on the sphere about unit ``mean`` at unit directions ``d`` (Dr.Jit arrays);
+    ``1 − mean·d`` as half the squared distance, for precision at large ``kappa``."""
+    import drjit as dr
+
+    one_minus = 0.5 * dr.squared_norm(d - mean)
+    norm = float(kappa / (2 * np.pi * (1 - np.exp(-2 * kappa))))
+    return norm * dr.exp(-kappa * one_minus)
+
+
+def vmf_sample(mean, u2, kappa: float):
+    """Directions drawn from the von Mises–Fisher lobe about unit ``mean`` (Wood's inversion), ``u2`` in [0, 1)²."""
+    import drjit as dr
+
+    mi = ensure_variant()
+    xi = dr.maximum(u2.x, 1e-7)
+    w = 1 + dr.log(xi + (1 - xi) * float(np.exp(-2 * kappa))) / float(kappa)
+    w = dr.clip(w, -1.0, 1.0)
+    r = dr.safe_sqrt(1 - w * w)
+    phi = float(2 * np.pi) * u2.y
+    frame = mi.Frame3f(mean)
+    return frame.to_world(mi.Vector3f(r * dr.cos(phi), r * dr.sin(phi), w))
 
 
 # ----------------------------------------------------------------- model build

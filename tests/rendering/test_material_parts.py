@@ -93,3 +93,39 @@ def test_a_part_no_camera_saw_is_zero_and_an_unused_part_reads_nothing(mi):
                           to_jit(mi.Vector3f, np.tile([0.0, 0.0, 1.0], (n, 1)).T))
         dr.eval(out)
         assert np.allclose(np.asarray(out.x), 0.0) and np.isfinite(np.asarray(out.y)).all()
+
+
+def test_the_cornea_lobe_is_sampled_as_its_pdf_and_peaks_at_the_mirror_direction(mi):
+    """The eyes' cornea lobe (PartMaterial.cornea): Mitsuba's chi-square harness on its sampling against its
+    density (a wider lobe than the material's, so the harness's grid resolves it), the density integrates to 1,
+    and the lobe's value is F_schlick(n·ω_o) × that density about reflect(−ω_o, n) on the eye (0 off it)."""
+    import drjit as dr
+    from mitsuba.chi2 import ChiSquareTest, SphericalDomain
+
+    from mifacerf.jitarrays import to_jit
+    from mifacerf.rendering.light_interp import LightInterpolator
+    from mifacerf.rendering.parts import CORNEA_F0, CORNEA_KAPPA, vmf_pdf, vmf_sample
+
+    mean = mi.Vector3f(*[float(x) for x in np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])])
+    chi2 = ChiSquareTest(domain=SphericalDomain(), sample_func=lambda s: vmf_sample(mean, s, 40.0),
+                         pdf_func=lambda d: vmf_pdf(mean, d, 40.0), sample_dim=2, sample_count=200_000, res=61, ires=4)
+    assert chi2.run(), chi2.messages
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(400_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    dens = np.asarray(vmf_pdf(mean, to_jit(mi.Vector3f, d.T), 40.0))
+    assert abs(dens.mean() * 4 * np.pi - 1) < 0.02
+    model, _, V = stand_in_model()
+    pm = PartMaterial(model, LightInterpolator(model.light_directions, method="voronoi").to_device())
+    pm.update({"eye_left": np.eye(4)}, None)
+    p = np.array([[0.0, 0.0, RADIUS], [0.0, RADIUS * 0.6, RADIUS * 0.8]])
+    view = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    n = p / RADIUS
+    mirror = 2 * (n * view).sum(1, keepdims=True) * n - view
+    for part, expect_zero in ((PARTS.index("eye_left"), False), (PARTS.index("teeth_upper"), True)):
+        val = pm.cornea(to_jit(mi.UInt32, np.full(2, part, np.uint32)), to_jit(mi.Point3f, p.T),
+                        to_jit(mi.Vector3f, view.T), to_jit(mi.Vector3f, mirror.T))
+        dr.eval(val)
+        cos = (n * view).sum(1)
+        peak = (CORNEA_F0 + (1 - CORNEA_F0) * (1 - cos) ** 5) * CORNEA_KAPPA / (2 * np.pi)
+        np.testing.assert_allclose(np.asarray(val), 0.0 if expect_zero else peak, rtol=2e-3)
