@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rendering.chunks import plan_frame
-from ..rendering.frame import resolve_pixels
+from ..rendering.frame import outline_texels, resolve_pixels
 
 
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
@@ -55,6 +55,7 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             have = np.zeros((h, w), bool)
             have[f.pixels[:, 0], f.pixels[:, 1]] = True
             depth = f.depth_map()
+            have &= ~outline_texels(depth)      # the texels on the subject's outline are not read
             p_s = np.einsum("nk,nkd->nd", bary, model.vertices[s][tv])
             uv, _ = cam.project(p_s)
             dist = np.linalg.norm(p_s - cam.centre, axis=1)

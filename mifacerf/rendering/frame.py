@@ -19,7 +19,9 @@ used); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's tw
 the point, with the primary weights; where no primary chunk sees it, with the fallback
 weights; where no chunk sees it, over the chunks regardless of the depth test with the
 fallback weights (documented fall-back); where no chunk covers the point at all,
-``covered`` is False.
+``covered`` is False. A field's texels on the subject's outline in its camera (:func:`outline_texels`:
+their pixels mix the surface with the capture's dark backdrop) are not read: a point there takes the
+colour of the texels inside, so a composite shows no dark fringe.
 
 A frame's pixels (:func:`resolve_pixels`): the alpha is the share of a pixel's samples that hit the
 target geometry (skin, extensions, eyes, teeth), so the silhouette is the geometry's anti-aliased outline
@@ -69,6 +71,36 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
     return rgba.reshape(height, width, 4).astype(np.float32), filled
 
 
+def outline_texels(depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the texels of a field (finite ``depth`` (H, W), +inf where it has none) on the subject's
+    outline in its camera — a 4-neighbour pixel shows the background: no texel, in a piece of the texel-free
+    area that reaches the image's border (the eye and mouth openings, enclosed by the face, are not
+    background). Such a pixel mixed the surface with the stage's dark backdrop (partial coverage): read
+    from it, the surface shows a dark fringe once composited over a plate."""
+    from scipy.ndimage import binary_dilation, label
+
+    seen = np.isfinite(np.asarray(depth))
+    if not seen.any() or seen.all():
+        return np.zeros(seen.shape, bool)
+    pieces, _ = label(~seen)
+    border = np.unique(np.concatenate([pieces[0], pieces[-1], pieces[:, 0], pieces[:, -1]]))
+    return seen & binary_dilation(np.isin(pieces, border[border > 0]))
+
+
+def outline_free(image: np.ndarray, depth: np.ndarray, drop: bool = True) -> np.ndarray:
+    """A chunk's lit image (H, W, 4) float32 with its :func:`outline_texels` dropped (RGB and coverage 0),
+    so a point there takes its colour from the texels inside; ``drop=False``: unchanged."""
+    image = np.asarray(image, np.float32)
+    if not drop:
+        return image
+    edge = outline_texels(depth)
+    if not edge.any():
+        return image
+    out = image.copy()
+    out[edge] = 0.0
+    return out
+
+
 class LitFrame:
     """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.
 
@@ -79,7 +111,7 @@ class LitFrame:
     """
 
     def __init__(self, target: np.ndarray, triangles: np.ndarray, chunks: list[dict], sources: dict,
-                 depth_tolerance: float = 0.004):
+                 depth_tolerance: float = 0.004, outline: bool = True):
         mi = ensure_variant()
         self.mi = mi
         self.n_chunks = len(chunks)
@@ -97,7 +129,7 @@ class LitFrame:
         img_off = 0
         for i, ch in enumerate(chunks):
             h, w = ch["image"].shape[:2]
-            img_parts.append(np.asarray(ch["image"], np.float32).reshape(-1))
+            img_parts.append(outline_free(ch["image"], ch["depth"], outline).reshape(-1))
             depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
             w_parts.append(np.asarray(ch["weights"], np.float32))
             f_parts.append(np.asarray(ch.get("fallback", ch["weights"]), np.float32))

@@ -1,11 +1,13 @@
 """The rendering chain (build → plan → relight → sample) on the toy capture (tests/helpers/toy.py)."""
 import numpy as np
 import pytest
+from scipy.ndimage import binary_dilation
 
 from mifacerf import environment as E
 from mifacerf.formats.capture import Capture
 from mifacerf.camera import Camera
 from mifacerf.rendering.build import build_model
+from mifacerf.rendering.frame import outline_texels
 from mifacerf.formats.model import ModelError
 from mifacerf.rendering.model import Model
 from mifacerf.rendering.renderer import Renderer, RenderStats
@@ -42,7 +44,9 @@ def test_captured_expression_and_camera_reproduce_the_relit_capture(toy):
         cam = model.cameras[1]
         img = r.render(model.vertices[s], one_hot(model, name), cam, env, spp=1)
         ref = E.relight(cap.field(name, cam.name), E.light_basis(env, model.light_directions))
-        mask = img[..., 3] > 0.999
+        # the field's texels on the outline (their pixels mix the surface with the backdrop) are not read
+        outline = outline_texels(model.field(s, 1).depth_map())
+        mask = (img[..., 3] > 0.999) & ~binary_dilation(outline)
         assert mask.sum() > 0.3 * mask.size
         assert psnr(img[..., :3], ref, mask) > 60.0  # float16 storage is the only difference
 
