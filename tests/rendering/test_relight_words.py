@@ -1,4 +1,4 @@
-"""The exact relight kernel reads float16 fields as 32-bit words (two halves each, :class:`HalfWords`): the
+"""The exact relight kernel reads float16 fields as 64-bit words (four halves each, :class:`HalfWords`): the
 same lit colours bit for bit as the Float16 gathers it replaced, for every light count, light subset and
 half value (subnormals, signs, zeros, the largest half)."""
 import numpy as np
@@ -22,7 +22,7 @@ def test_half_to_float_is_exact_for_every_finite_half():
     np.testing.assert_array_equal(np.asarray(out).view(np.uint32), halves[finite].astype(np.float32).view(np.uint32))
 
 
-@pytest.mark.parametrize("n_lights", [6, 7, 16])
+@pytest.mark.parametrize("n_lights", [6, 7, 8, 16])
 @pytest.mark.parametrize("subset", [False, True])
 def test_words_and_float16_give_the_same_lit_colours(n_lights, subset):
     rng = np.random.default_rng(n_lights)
