@@ -201,12 +201,15 @@ class RotatedLightBasis:
             i0 = np.minimum(np.floor(x).astype(np.int64), self.grid_n - 1)
             f = x - i0
             acc = np.zeros((len(x), self.n_lights, 3))
+            term = np.empty_like(acc)     # one buffer for every corner's term (no temporaries)
             corners = [np.array([(c >> 2) & 1, (c >> 1) & 1, c & 1]) for c in range(8)]
             rows = self._node_rows(np.concatenate([i0 + o for o in corners]))
             rows = rows.reshape(8, len(x))
             for c, o in enumerate(corners):
                 wgt = np.prod(np.where(o, f, 1 - f), axis=1)
-                acc += wgt[:, None, None] * self._node_values[rows[c]]
+                np.take(self._node_values, rows[c], axis=0, out=term)
+                term *= wgt[:, None, None]
+                acc += term
             out[rest[in_grid]] = acc
         return out
 
