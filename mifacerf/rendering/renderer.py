@@ -140,6 +140,7 @@ class Renderer:
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}
+        self._texel_maps: dict[tuple[int, int], tuple] = {}
 
     # -------------------------------------------------------------- lighting
     def light_basis(self, env: Environment) -> RotatedLightBasis:
@@ -154,6 +155,17 @@ class Renderer:
         if key not in self._device:
             self._device[key] = self.compression.load(self.model, s, c, self.rank, self.lights)
         return self._device[key]
+
+    def _texel_map(self, s: int, c: int, f):
+        """Field (s, c)'s texel vertices (N, 3) and depth map (H, W), made once (read-only; a frame reads them,
+        never writes)."""
+        key = (s, c)
+        if key not in self._texel_maps:
+            fv = self.model.triangles[f.tri]
+            depth = f.depth_map()
+            fv.flags.writeable = depth.flags.writeable = False
+            self._texel_maps[key] = (fv, depth)
+        return self._texel_maps[key]
 
     # ----------------------------------------------------------------- frame
     def light_frame(self, plan: FramePlan, env: Environment, stats: RenderStats | None = None) -> LitFrame:
@@ -193,7 +205,7 @@ class Renderer:
             data = self._device_field(s, c)
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            fv = model.triangles[f.tri]
+            fv, depth = self._texel_map(s, c, f)
             wt = f.bary * (chunk.weights + chunk.fallback)[fv]  # lit wherever either tier may read it
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
@@ -202,7 +214,7 @@ class Renderer:
             lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
             cam = model.cameras[c]
             chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback, "image": lit,
-                           "pixels": f.pixels[active], "depth": f.depth_map(), "camera": cam})
+                           "pixels": f.pixels[active], "depth": depth, "camera": cam})
             stats.chunks += 1
             stats.texels += len(active)
             stats.add_time("relight", time.perf_counter() - t0)
