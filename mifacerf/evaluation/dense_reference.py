@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rendering.chunks import plan_frame
-from ..rendering.frame import outline_texels, resolve_pixels
+from ..rendering.frame import OUTLINE_WEIGHT, outline_texels, resolve_pixels
 
 
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
@@ -55,7 +55,7 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             have = np.zeros((h, w), bool)
             have[f.pixels[:, 0], f.pixels[:, 1]] = True
             depth = f.depth_map()
-            have &= ~outline_texels(depth)      # the texels on the subject's outline are not read
+            inner = have & ~outline_texels(depth)   # texels off the subject's outline: preferred where any
             p_s = np.einsum("nk,nkd->nd", bary, model.vertices[s][tv])
             uv, _ = cam.project(p_s)
             dist = np.linalg.norm(p_s - cam.centre, axis=1)
@@ -66,8 +66,9 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             x0 = np.floor(uv[:, 0]).astype(np.int64)
             y0 = np.floor(uv[:, 1]).astype(np.int64)
             fx, fy = uv[:, 0] - x0, uv[:, 1] - y0
-            col, cov = np.zeros((len(idx), 3)), np.zeros(len(idx))
-            col_any, cov_any = np.zeros((len(idx), 3)), np.zeros(len(idx))
+            sums = {}   # (depth-tested?, off the outline only?) -> [colour, coverage]
+            for key in ((True, False), (True, True), (False, False), (False, True)):
+                sums[key] = [np.zeros((len(idx), 3)), np.zeros(len(idx))]
             for dy in (0, 1):
                 for dx in (0, 1):
                     xx, yy = x0 + dx, y0 + dy
@@ -77,12 +78,21 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
                     wt_any = np.where(ok, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
                     wt = np.where(np.abs(depth[ys, xs] - dist) <= tol, wt_any, 0.0)
                     lit = np.einsum("nlc,nlc->nc", dense[ys, xs], lam)  # Σ over every light
-                    col += wt[:, None] * lit
-                    cov += wt
-                    col_any += wt_any[:, None] * lit
-                    cov_any += wt_any
-            for tier, weight, cl, cv in (("primary", a_p, col, cov), ("fallback", f_p, col, cov),
-                                         ("any", f_p, col_any, cov_any)):
+                    for tested, weight_tap in ((True, wt), (False, wt_any)):
+                        for off, wtap in ((False, weight_tap), (True, weight_tap * inner[ys, xs])):
+                            sums[tested, off][0] += wtap[:, None] * lit
+                            sums[tested, off][1] += wtap
+            # the texels off the outline where the chunk has any for the point, else every texel
+            merged = {}
+            for tested in (True, False):
+                (c_all, v_all), (c_in, v_in) = sums[tested, False], sums[tested, True]
+                use_in = v_in > 1e-3
+                merged[tested] = (np.where(use_in[:, None], c_in / np.maximum(v_in, 1e-300)[:, None] * v_all[:, None],
+                                           c_all), v_all, np.where(use_in, 1.0, OUTLINE_WEIGHT))
+            col, cov, k_d = merged[True]
+            col_any, cov_any, k_a = merged[False]
+            for tier, weight, cl, cv in (("primary", a_p * k_d, col, cov), ("fallback", f_p * k_d, col, cov),
+                                         ("any", f_p * k_a, col_any, cov_any)):
                 seen = cv > 1e-3
                 acc[tier][seen] += weight[seen, None] * cl[seen] / cv[seen, None]
                 wsum[tier][seen] += weight[seen]

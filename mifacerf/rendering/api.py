@@ -24,6 +24,7 @@ from ..camera import Camera, ring_camera
 from ..environment import Environment, resolve
 from ..variant import ensure_plugins
 from .model import Model
+from .pose_blend import blend_geometry
 from .renderer import Renderer, RenderStats
 
 
@@ -97,22 +98,22 @@ class FaceModel:
             return mesh, m.blend.dense_weights(mesh[None])[0]
         w = parse_weights(expression, m.expressions)
         W = np.zeros((m.n_vertices, len(m.expressions)))
-        geometry = np.zeros((m.n_vertices, 3))
         for name, wt in w.items():
-            s = m.expression_index(name)
-            W[:, s] = wt
-            geometry += wt * m.vertices[s]
+            W[:, m.expression_index(name)] = wt
+        # the faces blended in their head frames, the head poses as rigid motions (issue 16: blends that turn the head)
+        geometry, _ = blend_geometry(m.vertices, m.head_pose, {m.expression_index(n): wt for n, wt in w.items()})
         return geometry, W
 
     def parts(self, expression=None, mesh=None) -> dict:
         """Eye and teeth transforms {part: 4x4 rest→world} of a blend of captured expressions or of a mesh."""
-        from .parts import target_parts_from_mesh, target_parts_from_weights
+        from .parts import target_parts_from_mesh
+        from .pose_blend import blend_parts
 
         if not self.model.references:
             return {}
         if mesh is not None:
             return target_parts_from_mesh(self.model, np.asarray(mesh, np.float64))
-        return target_parts_from_weights(self.model, parse_weights(expression, self.model.expressions))
+        return blend_parts(self.model, parse_weights(expression, self.model.expressions))
 
     def render(self, expression=None, *, mesh=None, camera=None, env="sky", spp: int = 4, size: int | None = None,
                stats: RenderStats | None = None, seed: int = 0, parts: dict | None = None,

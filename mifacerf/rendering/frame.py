@@ -20,8 +20,10 @@ the point, with the primary weights; where no primary chunk sees it, with the fa
 weights; where no chunk sees it, over the chunks regardless of the depth test with the
 fallback weights (documented fall-back); where no chunk covers the point at all,
 ``covered`` is False. A field's texels on the subject's outline in its camera (:func:`outline_texels`:
-their pixels mix the surface with the capture's dark backdrop) are not read: a point there takes the
-colour of the texels inside, so a composite shows no dark fringe.
+their pixels mix the surface with the capture's dark backdrop) are read only where the chunk has no
+other texel for the point, and such a chunk weighs ``OUTLINE_WEIGHT`` of its weight: a point there takes
+the colour of the texels inside or of the chunks that see it off their outline, so a composite shows no
+dark fringe, and nothing covered before loses its coverage.
 
 A frame's pixels (:func:`resolve_pixels`): the alpha is the share of a pixel's samples that hit the
 target geometry (skin, extensions, eyes, teeth), so the silhouette is the geometry's anti-aliased outline
@@ -87,17 +89,22 @@ def outline_texels(depth: np.ndarray) -> np.ndarray:
     return seen & binary_dilation(np.isin(pieces, border[border > 0]))
 
 
-def outline_free(image: np.ndarray, depth: np.ndarray, drop: bool = True) -> np.ndarray:
-    """A chunk's lit image (H, W, 4) float32 with its :func:`outline_texels` dropped (RGB and coverage 0),
-    so a point there takes its colour from the texels inside; ``drop=False``: unchanged."""
+#: the relative weight of a render chunk that sees a point only through texels on the outline
+OUTLINE_WEIGHT = 1e-3
+
+
+def mark_outline(image: np.ndarray, depth: np.ndarray, mark: bool = True) -> np.ndarray:
+    """A chunk's lit image (H, W, 4) float32 with its :func:`outline_texels` marked: coverage −1 instead
+    of 1 (:meth:`LitFrame.shade` reads such a texel only where the chunk has no other texel for the point,
+    so nothing that was covered loses its coverage); ``mark=False``: unchanged."""
     image = np.asarray(image, np.float32)
-    if not drop:
+    if not mark:
         return image
     edge = outline_texels(depth)
     if not edge.any():
         return image
     out = image.copy()
-    out[edge] = 0.0
+    out[edge, 3] = -np.abs(out[edge, 3])
     return out
 
 
@@ -129,7 +136,7 @@ class LitFrame:
         img_off = 0
         for i, ch in enumerate(chunks):
             h, w = ch["image"].shape[:2]
-            img_parts.append(outline_free(ch["image"], ch["depth"], outline).reshape(-1))
+            img_parts.append(mark_outline(ch["image"], ch["depth"], outline).reshape(-1))
             depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
             w_parts.append(np.asarray(ch["weights"], np.float32))
             f_parts.append(np.asarray(ch.get("fallback", ch["weights"]), np.float32))
@@ -197,28 +204,41 @@ class LitFrame:
             use = active & ((a > 0) | (af > 0)) & (zc > 0)
             # bilinear over the 2x2 texels, each tap used only if the surface camera c saw there lies
             # at the point's distance (occlusion-aware filtering); the last resort ignores depth
-            col_d = [Float(0), Float(0), Float(0)]
-            cov_d = Float(0)
-            col = [Float(0), Float(0), Float(0)]
-            cov = Float(0)
+            # each sum twice: over every texel, and over the texels off the outline (coverage > 0; an
+            # outline texel, coverage -1, is read only where the chunk has no other texel for the point)
+            col_d, col_di = [Float(0), Float(0), Float(0)], [Float(0), Float(0), Float(0)]
+            col, col_i = [Float(0), Float(0), Float(0)], [Float(0), Float(0), Float(0)]
+            cov_d, cov_di, cov, cov_i = Float(0), Float(0), Float(0), Float(0)
             for pix, wgt, inside in bilinear_taps(u, v, wi, hi, use):
                 pix = ioff + pix
                 depth = dr.gather(Float, self.depths, pix, inside)
                 wdep = dr.select(dr.abs(depth - dist) <= tol, wgt, 0.0)
                 tap = [dr.gather(Float, self.images, pix * 4 + ch, inside) for ch in range(4)]
+                t_all, t_in = dr.abs(tap[3]), dr.maximum(tap[3], 0.0)
                 for ch in range(3):
-                    col[ch] += wgt * tap[ch]
-                    col_d[ch] += wdep * tap[ch]
-                cov += wgt * tap[3]
-                cov_d += wdep * tap[3]
+                    col[ch] += wgt * t_all * tap[ch]
+                    col_d[ch] += wdep * t_all * tap[ch]
+                    col_i[ch] += wgt * t_in * tap[ch]
+                    col_di[ch] += wdep * t_in * tap[ch]
+                cov += wgt * t_all
+                cov_d += wdep * t_all
+                cov_i += wgt * t_in
+                cov_di += wdep * t_in
             ok = use & (cov > 1e-3)
             seen = use & (cov_d > 1e-3)
-            seen_col = [col_d[ch] * dr.select(seen, dr.rcp(cov_d), 0.0) for ch in range(3)]
-            any_col = [col[ch] * dr.select(ok, dr.rcp(cov), 0.0) for ch in range(3)]
+            inner_d, inner = cov_di > 1e-3, cov_i > 1e-3
+            seen_col = [dr.select(inner_d, col_di[ch] * dr.rcp(cov_di), col_d[ch] * dr.select(seen, dr.rcp(cov_d), 0.0))
+                        for ch in range(3)]
+            any_col = [dr.select(inner, col_i[ch] * dr.rcp(cov_i), col[ch] * dr.select(ok, dr.rcp(cov), 0.0))
+                       for ch in range(3)]
             out = []
+            # a chunk that has only outline texels for the point weighs OUTLINE_WEIGHT of its weight: the
+            # chunks that see the point off their outline give its colour wherever there is one
+            low = dr.opaque(Float, OUTLINE_WEIGHT)
+            kd, ka = dr.select(inner_d, 1.0, low), dr.select(inner, 1.0, low)
             # accumulators: (primary, seen), (fallback, seen), (fallback, regardless of depth)
-            for k, (wt, c3) in enumerate(((dr.select(seen, a, 0.0), seen_col), (dr.select(seen, af, 0.0), seen_col),
-                                          (dr.select(ok, af, 0.0), any_col))):
+            for k, (wt, c3) in enumerate(((dr.select(seen, a * kd, 0.0), seen_col), (dr.select(seen, af * kd, 0.0), seen_col),
+                                          (dr.select(ok, af * ka, 0.0), any_col))):
                 out += [acc[4 * k + ch] + wt * c3[ch] for ch in range(3)] + [acc[4 * k + 3] + wt]
             return (i + 1, *out)
 

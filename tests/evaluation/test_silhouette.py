@@ -106,8 +106,9 @@ def test_resolve_pixels_fills_from_the_nearest_covered_pixel():
 
 def test_outline_texels_are_the_outer_ring_not_the_rim_of_a_hole():
     """A field's texels beside the background (the texel-free area reaching the image border) are on the
-    subject's outline and are not read; those around an enclosed opening (an eye, the mouth) are kept."""
-    from mifacerf.rendering.frame import outline_free, outline_texels
+    subject's outline and are marked (coverage -1: read only where the chunk has no other texel for the
+    point); those around an enclosed opening (an eye, the mouth) are not."""
+    from mifacerf.rendering.frame import mark_outline, outline_texels
 
     yy, xx = np.mgrid[:21, :21]
     r = np.hypot(yy - 10, xx - 10)
@@ -118,7 +119,7 @@ def test_outline_texels_are_the_outer_ring_not_the_rim_of_a_hole():
     assert edge[r > 6.5].sum() == edge.sum()          # only the outer ring
     assert not edge[(r > 2) & (r < 4)].any()          # the hole's rim is kept
     img = np.ones((21, 21, 4), np.float32)
-    out = outline_free(img, depth)
-    assert (out[edge] == 0).all() and (out[~edge] == 1).all() and (img == 1).all()
-    assert outline_free(img, depth, drop=False) is not None and (outline_free(img, depth, drop=False) == 1).all()
+    out = mark_outline(img, depth)
+    assert (out[edge, 3] == -1).all() and (out[~edge] == 1).all() and (out[..., :3] == 1).all() and (img == 1).all()
+    assert (mark_outline(img, depth, mark=False) == 1).all()
     assert not outline_texels(np.full((5, 5), np.inf)).any() and not outline_texels(np.ones((5, 5))).any()
