@@ -168,6 +168,45 @@ def evaluate_proposed_template(cap_dir: Path, truth: Path, truth_dots: np.ndarra
     return rows, match
 
 
+def missed_dots(session, doc: dict, user, truth: Path) -> dict:
+    """The true fiducials no proposed dot matches (:func:`match_truth`): how many, by the user's regions, how
+    many more than 5 cm to the side, and by the number of views (seen there, in the user's mesh) with a
+    peak of the proposal's dot map within 1 px of them; the proposed dots matching none (phantoms) and
+    how far each is from the nearest true fiducial (mm)."""
+    from scipy.spatial import cKDTree
+
+    from mifacerf.geometry.visibility import Visibility
+    from mifacerf.registration.consensus import view_peaks
+    from mifacerf.registration.hand import Template
+    from mifacerf.registration.proxies import proxies_for
+    from mifacerf.studio.proposals import untuned_filter
+
+    ptpl = Template.from_dict(doc)
+    T0 = np.load(truth / "expressions" / f"{session.neutral}.npz")["template_vertices"]
+    match = match_truth(ptpl, T0, user.dot_ids)
+    found = set(match.values())
+    miss = np.array([int(v) for v in user.dot_ids if int(v) not in found], np.int64)
+    regions = {int(v): k for k, ids in user.regions.items() for v in ids}
+    by_region: dict = {}
+    for v in miss:
+        by_region[regions.get(int(v), "none")] = by_region.get(regions.get(int(v), "none"), 0) + 1
+    vis = Visibility(user.triangles, user.n_vertices, tol=5e-4)(T0, session.cams, min_cos=0.2)[:, miss]
+    f = untuned_filter(session, use_template=False)
+    with_peak = np.zeros(len(miss), np.int64)
+    for c, cam in enumerate(session.cams):
+        m = f.strength(proxies_for(session.cap, session.neutral, cam.name).diffuse, cam.name)
+        pk = view_peaks(m, 0.3, max(1.2, 1.5 * f.sigma)).uv
+        if len(pk) and len(miss):
+            d, _ = cKDTree(pk).query(cam.project(T0[miss])[0])
+            with_peak += (d < 1.0) & vis[c]
+    phantoms = [int(v) for v in ptpl.dot_ids if int(v) not in match]
+    d_ph = cKDTree(T0[user.dot_ids]).query(ptpl.vertices[phantoms])[0] if phantoms else []
+    return {"missed": int(len(miss)), "by_region": dict(sorted(by_region.items(), key=lambda kv: -kv[1])),
+            "more_than_5cm_to_the_side": int((np.abs(T0[miss, 0] - T0[user.dot_ids, 0].mean()) > 0.05).sum()),
+            "views_with_a_peak": np.bincount(with_peak, minlength=len(session.cams) + 1).tolist(),
+            "phantoms_mm": [round(float(x) * 1000, 1) for x in d_ph]}
+
+
 def template_vs_user(doc: dict, user) -> dict:
     """The proposed template's special vertices against the synthetic user's template (mm): every lip /
     eyelid margin vertex to the nearest vertex of the user's same margins (range), the eye centres."""
@@ -257,6 +296,8 @@ def main(argv=None) -> int:
         print(r["note"])
         print("proposed vs the user's template (mm; margins: min / median / max to the nearest user vertex):",
               json.dumps(template_vs_user(r["template"], user_tpl)))
+        print("the user's fiducials the proposal misses:", json.dumps(missed_dots(Session(source), r["template"],
+                                                                                   user_tpl, truth)))
         return 0
     hand_cap = out / "hand" / "capture"
     prop_cap = out / ("proposed-template" if args.proposed_template else "proposed") / "capture"

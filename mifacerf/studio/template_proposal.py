@@ -65,11 +65,14 @@ def _epipolar_pairs(ca, cb, ua: np.ndarray, ub: np.ndarray, tol_px: float) -> np
 
 
 def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float = 1.0, support_px: float = 1.0,
-                     centroid_sigma: float = 1.2, depth_range=(0.5, 3.0), grow: bool | dict = True
-                     ) -> tuple[np.ndarray, dict]:
+                     centroid_sigma: float = 1.2, depth_range=(0.5, 3.0), grow: bool | dict = True,
+                     min_spacing_px: float = 7.0) -> tuple[np.ndarray, dict]:
     """3-D dots (N, 3) from per-view strength maps {camera: (H, W)}, and a summary. ``grow``: add the
     ambiguous two-view hypotheses that continue the surface of the others (:func:`_grow_on_surface`;
-    a dict: its parameters)."""
+    a dict: its parameters) where the dots found are at least ``min_spacing_px`` apart in the images
+    (median nearest neighbour over the centre pixel footprint). Measured: on ``draft`` (9.8 px) growing
+    adds 39 points, one matching no true fiducial; on ``tiny`` (5.4 px) 57, 29 matching none (some 6-10
+    cm off): the threshold lies between the two."""
     names = [c.name for c in cams]
     peaks = [view_peaks(maps[n], min_peak, centroid_sigma).uv for n in names]
     C = len(cams)
@@ -141,7 +144,14 @@ def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float
         out.append(X)
         nv.append(-nviews_neg)
     n_strong = len(out)
-    if grow and len(out) >= 8:
+    spacing_px = 0.0
+    if len(out) >= 8:
+        from scipy.spatial import cKDTree as _Tree
+
+        spacing_px = float(np.median(_Tree(np.asarray(out)).query(np.asarray(out), k=2)[0][:, 1])) \
+            / centre_footprint(cams)
+    # dots fewer than ``min_spacing_px`` apart in the images: a wrong pairing lies too near the surface
+    if grow and len(out) >= 8 and spacing_px >= min_spacing_px:
         rest = [({c: int(idx[c, n]) for c in range(C) if used[c, n]}, tr.points[n]) for n in np.flatnonzero(ambiguous)]
         for X in _grow_on_surface(out, rest, taken, **(grow if isinstance(grow, dict) else {})):
             out.append(X)
@@ -149,7 +159,8 @@ def detect_and_match(cams, maps: dict, min_peak: float = 0.3, epipolar_px: float
     P = np.asarray(out).reshape(-1, 3)
     views = np.bincount([-s[0] for s in scored], minlength=C + 1).tolist() if scored else []
     return P, {"peaks": [len(p) for p in peaks], "hypotheses": len(hyps), "consistent": len(scored),
-               "points": len(P), "grown": len(P) - n_strong, "hypotheses_by_views": views, "views_per_point": nv}
+               "points": len(P), "grown": len(P) - n_strong, "spacing_px": round(spacing_px, 2),
+               "hypotheses_by_views": views, "views_per_point": nv}
 
 
 def _grow_on_surface(accepted: list, rest: list, taken: list, neighbours: int = 6, radius: float = 0.05,
