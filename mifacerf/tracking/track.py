@@ -9,7 +9,10 @@ Writes ``TRACK/`` (default ``PERF/track``)::
     track.json    format, inputs, options, per-frame camera problems, counts, keyframes used, timing
     track.npz     vertices (N, T, 3)   the target mesh per frame, template topology, world, metres
                   status (N, T) int8   1 from the data (tracked dot; vertex placed from tracked dots or
-                                       keyframes), 0 predicted only (untracked: from neighbours / time)
+                                       keyframes), 0 predicted only (untracked: from neighbours / time);
+                                       the template's extensions (scalp, ears, neck) placed as the
+                                       registration places them: rigid with the frame's head pose or
+                                       driven by the nearest tracked dots (registration.extensions)
                   dots (N, D, 3)       tracked dot positions (smoothed, gaps filled)
                   dot_status (N, D)    1 tracked, 0 untracked in that frame
                   dot_ids (D,)         template ids of the dots
@@ -38,6 +41,7 @@ import numpy as np
 
 from ..formats.files import OutputFolder, repair_if_needed, write_json_atomic
 from ..registration.contours import propagate, rings
+from ..registration.extensions import extensions_from_template, place_in_expression
 from ..registration.hand import Template, read_hand_inputs
 from ..geometry.schaefer2006 import mls_affine
 from ..stats import median_p95
@@ -73,6 +77,26 @@ def reference(template: Template, model=None) -> tuple[np.ndarray, dict, str]:
         if np.isfinite(ec[i]).all():
             eyes[side] = Hinv[:3, :3] @ ec[i] + Hinv[:3, 3]
     return V, eyes, f"model {model.root} (registered {model.neutral})"
+
+
+def place_extensions_per_frame(tpl: Template, V_ref, V, status, head) -> dict:
+    """Place ``tpl``'s extensions in every tracked frame (``V`` (N, T, 3) and ``status`` (N, T) updated in
+    place) with :func:`mifacerf.registration.extensions.place_in_expression`: from the rest positions
+    ``V_ref`` (T, 3), the frame's tracked dots (status 1) and its head pose ``head`` (N, 4, 4, rest →
+    frame). A frame without a finite head pose keeps the dots' map. Returns {"frames": placed, "fallbacks":
+    the messages of the first frame that had any}."""
+    exts = extensions_from_template(tpl.raw, tpl.n_vertices)
+    report = {"frames": 0, "fallbacks": []}
+    if not exts:
+        return report
+    for f in range(len(V)):
+        if not np.isfinite(head[f]).all():
+            continue
+        rep = place_in_expression(V_ref, tpl.triangles, tpl.dot_ids, exts, V[f], status[f], head[f])
+        report["frames"] += 1
+        if rep["fallbacks"] and not report["fallbacks"]:
+            report["fallbacks"] = [f"frame {f}: {m}" for m in rep["fallbacks"]]
+    return report
 
 
 def _load_model(model):
@@ -164,6 +188,9 @@ def _track(perf: PerformanceFolder, out: Path, target: Path, model, options, fra
             anchors = np.ones(len(dots), bool)
         V[f, extras] = mls_affine(tracker.X_ref[anchors], X[f, anchors], V_ref[extras], k=16)
         status[f, extras] = 1 if (dst[f] == 1).sum() >= 4 else 0
+    # the template's extensions (scalp, ears, neck) as the registration places them: rigid with the head
+    # pose, or driven by the nearest tracked dots with a falloff (registration.extensions)
+    ext_report = place_extensions_per_frame(tpl, V_ref, V, status, head)
     # lips and eyelids from the keyframes, then the band round them follows (as registration does)
     keys = perf.keyframes()
     keyed = {m: keys["lips"] for m in LIP_MARGINS}
@@ -218,6 +245,7 @@ def _track(perf: PerformanceFolder, out: Path, target: Path, model, options, fra
         "frames_without_two_usable_cameras": _ranges(np.flatnonzero(~usable)),
         "lips_eyelids": margin_report, "eyes": eye_report, "keyframes": keys,
         "head_pose": f"robust rigid fit of {len(rigid)} forehead / nose / ear dots per frame",
+        "extensions": ext_report,
         "time_s": {"per_frame_mean": round(float(frame_s.mean()), 4), "frames_total": round(float(frame_s.sum()), 2),
                    "finish": round(finish_s, 2)},
         "hand_input_problems": [p for p in hand.problems if "coarse_points" not in p],
