@@ -31,10 +31,15 @@ from .texcoords import texture_coordinates
 META_KEYS = ("options", "hand_input_problems", "dot_filter", "head_points_neutral", "eyes_head_frame", "eyes")
 
 
-def extend_registration(capture, registration=None, out=None, log=None) -> Path:
+def extend_registration(capture, registration=None, out=None, log=None, silhouettes: bool = True) -> Path:
     """Write ``out`` (default ``CAPTURE/registration-extended``): the registration ``registration`` (default
     ``CAPTURE/registration``) with the extensions of ``CAPTURE/hand/template.json`` placed in every
-    expression. Refuses a template whose first vertices are not the registered template's."""
+    expression. Refuses a template whose first vertices are not the registered template's.
+
+    ``silhouettes``: first move the template's extension vertices so that, placed in the neutral, their
+    outline in every capture camera lies on the subject's (:func:`.extensions.refine_template_extensions`,
+    mattes from the neutral's diffuse proxies against the stage's dark background); the registration's
+    ``template.json`` carries the moved positions and the neutral's report says how far they moved."""
     log = log or (lambda msg: None)
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     old = Registration(registration or cap.root / "registration", capture=cap)
@@ -63,13 +68,19 @@ def extend_registration(capture, registration=None, out=None, log=None) -> Path:
                                      "exactly the extensions' (and the extensions none of the registered ones)")
     cams = list(cap.rig.cameras)
     vis = Visibility(tpl.triangles, tpl.n_vertices, tol=max(0.5 * centre_footprint(cams), 5e-4))
-    writer = RegistrationWriter(out, cap, tpl.to_dict(), fresh=True)
+    names = old.expression_names
+    neutral = next((e.name for e in cap.expressions if e.category == "neutral" and e.name in names), names[0])
+    rest, refined, raw = tpl.vertices, None, tpl.to_dict()
+    if silhouettes:
+        rest, refined = _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis)
+        raw["vertices"] = [dict(v, position=np.round(rest[i], 7).tolist()) if i >= n_face else v
+                           for i, v in enumerate(raw["vertices"])]
+        log(f"extensions fitted to the neutral's outlines: {refined['summary']}")
+    writer = RegistrationWriter(out, cap, raw, fresh=True)
     try:
         for key in META_KEYS:
             if key in old.meta:
                 writer.set_meta(key, old.meta[key])
-        names = old.expression_names
-        neutral = next((e.name for e in cap.expressions if e.category == "neutral" and e.name in names), names[0])
         N = None
         for name in [neutral] + [n for n in names if n != neutral]:
             r = old.expression(name)
@@ -77,8 +88,10 @@ def extend_registration(capture, registration=None, out=None, log=None) -> Path:
             V = np.concatenate([r.vertices, tpl.vertices[n_face:]])
             status = np.concatenate([r.status, np.zeros(tpl.n_vertices - n_face, r.status.dtype)])
             predicted = str((report.get("head_pose") or {}).get("source", "")).startswith("none")
-            rep = place_in_expression(tpl.vertices, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose,
+            rep = place_in_expression(rest, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose,
                                       neutral=N, head_predicted=predicted)
+            if refined is not None and name == neutral:
+                rep["silhouettes"] = refined
             report["extensions"] = rep
             report["flags"] = list(report.get("flags", [])) + rep["fallbacks"] + [
                 "extensions placed on an existing registration (mifacerf.registration.extend)"]
@@ -96,3 +109,24 @@ def extend_registration(capture, registration=None, out=None, log=None) -> Path:
         writer.abort()
         raise
     return writer.finish()
+
+
+def _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis) -> tuple[np.ndarray, dict]:
+    """The template with its extensions fitted to the neutral's outlines, and the fit's report."""
+    from .extensions import refine_template_extensions, silhouette_matte
+    from .proxies import proxies_for
+
+    r = old.expression(neutral)
+    V = np.concatenate([r.vertices, tpl.vertices[n_face:]])
+    status = np.concatenate([r.status, np.zeros(tpl.n_vertices - n_face, r.status.dtype)])
+    place_in_expression(tpl.vertices, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose)
+    mattes = [silhouette_matte(proxies_for(cap, neutral, c.name).diffuse) for c in cams]
+    _, visible = texture_coordinates(V, cams, vis)
+    rest, rep = refine_template_extensions(tpl.vertices, tpl.triangles, exts, V, r.head_pose, cams, mattes, visible)
+    moved = np.linalg.norm(rest[n_face:] - tpl.vertices[n_face:], axis=1)
+    first, last = (rep["rounds"][0], rep["rounds"][-1]) if rep["rounds"] else ({}, {})
+    rep["moved_mm"] = {"mean": float(1000 * moved.mean()), "max": float(1000 * moved.max())}
+    rep["summary"] = (f"{first.get('measured', 0)} vertices on an outline, offset to the subject's "
+                      f"{first.get('mean_abs_offset_mm', 0):.2f} -> {last.get('mean_abs_offset_mm', 0):.2f} mm; "
+                      f"moved {rep['moved_mm']['mean']:.2f} mm on average (max {rep['moved_mm']['max']:.2f})")
+    return rest, rep

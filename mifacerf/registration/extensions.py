@@ -222,3 +222,161 @@ def place_in_expression(template, faces, fiducials, extensions, V, status, head,
     V[ids] = P[ids]
     status[ids] = 1 if placed else 0
     return rep
+
+
+# ---------------------------------------------------------------- silhouettes
+# The extensions' own positions come from the user's template (no fiducials: nothing in the images pins
+# them), so a template placed with clicking error keeps it in every expression, and the outline a render
+# shows is off the subject's by that much. The capture's images do pin one thing about them: where the
+# head ends against the stage's dark background. :func:`refine_to_silhouettes` moves the extension
+# vertices along their normals until the mesh's outline in every capture camera lies on the subject's.
+
+def silhouette_matte(image, floor: float = 1e-4) -> np.ndarray:
+    """(H, W) coverage of the subject in a capture image (H, W, 3) lit evenly against a dark background
+    (the diffuse proxy, :mod:`.proxies`): 1 on the support eroded by one pixel, and on its border the
+    pixel's brightness over that of the nearest interior pixel (an edge pixel is the surface times its
+    coverage), 0 where the image is dark (below ``floor`` of its maximum)."""
+    from scipy.ndimage import binary_erosion, distance_transform_edt
+
+    lum = np.asarray(image, np.float64)
+    lum = lum.mean(-1) if lum.ndim == 3 else lum
+    support = lum > floor * max(float(lum.max()), 1e-30)
+    inner = binary_erosion(support, np.ones((3, 3), bool), border_value=1)
+    if not inner.any():
+        return support.astype(np.float64)
+    _, (ii, jj) = distance_transform_edt(~inner, return_indices=True)
+    alpha = np.clip(lum / np.maximum(lum[ii, jj], 1e-30), 0.0, 1.0)
+    alpha[inner] = 1.0
+    alpha[~support] = 0.0
+    return alpha
+
+
+def mesh_matte(scene, camera, spp: int = 8) -> np.ndarray:
+    """(H, W) coverage of a :class:`~mifacerf.geometry.meshscene.MeshScene` in ``camera``: the share of
+    each pixel's ``spp`` stratified samples (box filter, as the capture's pixels) that hit it."""
+    from ..camera import stratified_pixel_samples
+
+    uv = stratified_pixel_samples(camera.width, camera.height, spp, seed=0)
+    o, d = camera.pixel_rays(uv)
+    hit = scene.trace(o, d).valid
+    return hit.reshape(camera.height, camera.width, spp).mean(-1)
+
+
+def _crossing(matte, u, v, t, step):
+    """Per row of sample lines (u, v) (n, k) at parameters ``t`` (k,): the crossing of coverage 0.5
+    from inside to outside nearest to t = 0 (inf where none)."""
+    from scipy.ndimage import map_coordinates
+
+    a = map_coordinates(np.asarray(matte, np.float64), [np.nan_to_num(v), np.nan_to_num(u)], order=1,
+                        mode="constant", cval=0.0)
+    inside = a >= 0.5
+    cross = inside[:, :-1] & ~inside[:, 1:]
+    frac = (a[:, :-1] - 0.5) / np.maximum(a[:, :-1] - a[:, 1:], 1e-12)
+    tc = np.where(cross, t[None, :-1] + frac * step, np.inf)
+    return np.take_along_axis(tc, np.argmin(np.abs(tc), axis=1)[:, None], 1)[:, 0]
+
+
+def outline_offsets(V, N, ids, camera, matte, own, max_cos: float = 0.15, search_px: float = 4.0,
+                    step_px: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
+    """For vertices ``ids`` on the mesh's outline in ``camera`` (normal within ``max_cos`` of
+    perpendicular to the view ray), how far (m, along the normal; + outwards) the subject's outline in
+    ``matte`` (H, W) lies beyond the mesh's own in ``own`` (H, W, :func:`mesh_matte`): on the image line
+    through the vertex along its projected normal, each outline is the crossing of coverage 0.5 from
+    inside to outside nearest to the vertex, within ``search_px``. Returns (offsets (n,), weights (n,);
+    0 where not on the outline or a crossing is missing)."""
+    P, n = V[ids], N[ids]
+    view = P - camera.centre
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-30)
+    cos = np.abs((view * n).sum(1))
+    eps = 1e-3
+    uv0, z0 = camera.project(P)
+    uv1, _ = camera.project(P + eps * n)
+    du = uv1 - uv0
+    jac = np.linalg.norm(du, axis=1) / eps                      # pixels per metre along the normal
+    ok = (cos < max_cos) & (z0 > 0) & np.isfinite(uv0).all(1) & (jac > 1.0)
+    m = du / np.maximum(np.linalg.norm(du, axis=1, keepdims=True), 1e-30)
+    t = np.arange(-search_px, search_px + 1e-9, step_px)
+    u = uv0[:, None, 0] + t[None] * m[:, None, 0]
+    v = uv0[:, None, 1] + t[None] * m[:, None, 1]
+    diff = _crossing(matte, u, v, t, step_px) - _crossing(own, u, v, t, step_px)
+    ok &= np.isfinite(diff)
+    off = np.where(ok, diff / np.maximum(jac, 1e-30), 0.0)
+    w = np.where(ok, 1.0 - cos / max_cos, 0.0)
+    return off, w
+
+
+def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iterations: int = 8,
+                          smoothness: float = 0.1, max_step: float = 0.003, **options) -> tuple[np.ndarray, dict]:
+    """Move the vertices ``ids`` of mesh ``V`` (T, 3) along their normals so that the mesh's outline in each
+    of ``cameras`` lies on the subject's outline in its ``mattes`` (H, W) (:func:`silhouette_matte`).
+
+    Each round measures, for every vertex on the outline of some camera where it is ``visible`` (C, T)
+    bool (default: everywhere), the offset to the subject's outline (:func:`outline_offsets`; ``options``
+    go there), and solves for a smooth displacement of all ``ids`` (weighted least squares on the
+    measurements + ``smoothness`` × the squared differences across mesh edges; the other vertices of the
+    mesh stay fixed, so the extensions stay stitched to the face), each step clipped to ``max_step`` m.
+    Returns (the moved (T, 3) copy of ``V``, a report: vertices measured, mean |offset| first and last)."""
+    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse.linalg import spsolve
+
+    from ..geometry.meshscene import MeshScene
+    from ..geometry.visibility import vertex_normals
+
+    V = np.asarray(V, np.float64).copy()
+    F = np.asarray(faces, np.int64)
+    ids = np.unique(np.asarray(ids, np.int64))
+    T = len(V)
+    free = np.full(T, -1, np.int64)
+    free[ids] = np.arange(len(ids))
+    e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    e = e[(free[e] >= 0).any(1)]
+    report = {"vertices": int(len(ids)), "rounds": []}
+    scene = MeshScene(V, F)
+    for _ in range(max(0, int(iterations))):
+        N = vertex_normals(V, F)
+        scene.set_vertices(V)
+        num = np.zeros(len(ids))
+        den = np.zeros(len(ids))
+        for c, (cam, matte) in enumerate(zip(cameras, mattes)):
+            sel = ids if visible is None else ids[np.asarray(visible)[c, ids]]
+            if not len(sel):
+                continue
+            off, w = outline_offsets(V, N, sel, cam, matte, mesh_matte(scene, cam), **options)
+            np.add.at(num, free[sel], w * off)
+            np.add.at(den, free[sel], w)
+        seen = den > 0
+        if not seen.any():
+            break
+        d = np.where(seen, num / np.maximum(den, 1e-30), 0.0)
+        # smooth displacement s of the free vertices: (W + λ L_ff) s = W d  (fixed neighbours at 0)
+        a, b = free[e[:, 0]], free[e[:, 1]]
+        rows, cols, vals = [], [], []
+        for x, y in ((a, b), (b, a)):
+            keep = x >= 0
+            rows += [x[keep], x[keep]]
+            cols += [x[keep], np.where(y[keep] >= 0, y[keep], x[keep])]
+            vals += [np.full(keep.sum(), smoothness), np.where(y[keep] >= 0, -smoothness, 0.0)]
+        L = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                       shape=(len(ids), len(ids))).tocsr()
+        A = (L + diags(den + 1e-9)).tocsc()
+        s = np.clip(spsolve(A, den * d), -max_step, max_step)
+        V[ids] += s[:, None] * N[ids]
+        report["rounds"].append({"measured": int(seen.sum()), "mean_abs_offset_mm": float(1000 * np.abs(d[seen]).mean()),
+                                 "mean_abs_step_mm": float(1000 * np.abs(s).mean())})
+    return V, report
+
+
+def refine_template_extensions(template, faces, extensions, V, head, cameras, mattes, visible=None,
+                               **options) -> tuple[np.ndarray, dict]:
+    """The user's template (T, 3) with its extension vertices moved so that, placed in the registered
+    neutral ``V`` (T, 3, extensions placed; ``head`` (4, 4) its head pose), their outline matches the
+    capture's (:func:`refine_to_silhouettes` on ``mattes``, one per camera): the neutral's displacement is
+    carried back into the template's frame by the head pose's rotation, so every expression that places
+    the extensions from the template gets it. Returns (template copy, report)."""
+    X = np.asarray(template, np.float64).copy()
+    ids = np.unique(np.concatenate([np.asarray(e.vertices, np.int64) for e in extensions]))
+    moved, report = refine_to_silhouettes(V, faces, ids, cameras, mattes, visible, **options)
+    R = np.asarray(head, np.float64)[:3, :3] if head is not None else np.eye(3)
+    X[ids] += (moved[ids] - np.asarray(V, np.float64)[ids]) @ R     # R^T d for each row d
+    return X, report

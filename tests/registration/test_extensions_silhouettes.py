@@ -1,0 +1,75 @@
+"""Extensions fitted to the capture's outlines (issue 16): a template extension placed with clicking error
+moves along its normals until its outline in every camera lies on the subject's."""
+import numpy as np
+
+from mifacerf.camera import Camera
+from mifacerf.geometry.meshscene import MeshScene
+from mifacerf.registration.extensions import mesh_matte, outline_offsets, refine_to_silhouettes, silhouette_matte
+from mifacerf.geometry.visibility import vertex_normals
+
+
+def _sphere(n_lat=14, n_lon=24, r=0.1):
+    V = [[0, r, 0]]
+    for i in range(1, n_lat):
+        th = np.pi * i / n_lat
+        for j in range(n_lon):
+            ph = 2 * np.pi * j / n_lon
+            V.append([r * np.sin(th) * np.cos(ph), r * np.cos(th), r * np.sin(th) * np.sin(ph)])
+    V.append([0, -r, 0])
+    V = np.array(V)
+    F, last = [], len(V) - 1
+    ring = lambda i, j: 1 + (i - 1) * n_lon + j % n_lon  # noqa: E731
+    for j in range(n_lon):
+        F.append([0, ring(1, j + 1), ring(1, j)])
+        F.append([last, ring(n_lat - 1, j), ring(n_lat - 1, j + 1)])
+    for i in range(1, n_lat - 1):
+        for j in range(n_lon):
+            a, b, c, d = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
+            F += [[a, b, c], [b, d, c]]
+    return V, np.array(F)
+
+
+def _cameras(n=4, size=64):
+    cams = []
+    for k in range(n):
+        a = 2 * np.pi * k / n + 0.3
+        cams.append(Camera.look_at(f"c{k}", [0.8 * np.sin(a), 0.1, 0.8 * np.cos(a)], [0, 0, 0], width=size,
+                                   height=size, focal=220.0))
+    return cams
+
+
+def test_silhouette_matte_is_the_coverage_of_an_evenly_lit_subject():
+    img = np.zeros((9, 9, 3))
+    img[2:7, 2:7] = 0.6
+    img[2:7, 7] = 0.3                                  # a column half covered
+    a = silhouette_matte(img)
+    assert (a[3:6, 3:6] == 1).all() and (a[0] == 0).all()
+    np.testing.assert_allclose(a[3:6, 7], 0.5)
+
+
+def test_refinement_brings_a_noisy_extension_onto_the_subjects_outline():
+    V, F = _sphere()
+    fine_V, fine_F = _sphere(40, 64)
+    cams = _cameras()
+    truth = MeshScene(fine_V, fine_F)
+    mattes = [mesh_matte(truth, c, spp=16) for c in cams]
+    rng = np.random.default_rng(3)
+    ids = np.flatnonzero(V[:, 1] > -0.05)             # the "extension": everything above a cut
+    noisy = V.copy()
+    N = vertex_normals(V, F)
+    noisy[ids] += rng.normal(0, 0.002, len(ids))[:, None] * N[ids]
+
+    def outline_error(X):
+        scene, N = MeshScene(X, F), vertex_normals(X, F)
+        offs = [outline_offsets(X, N, ids, c, m, mesh_matte(scene, c)) for c, m in zip(cams, mattes)]
+        o = np.concatenate([x[0] for x in offs])
+        w = np.concatenate([x[1] for x in offs])
+        return np.abs(o[w > 0]).mean()
+
+    before = outline_error(noisy)
+    fitted, rep = refine_to_silhouettes(noisy, F, ids, cams, mattes)
+    after = outline_error(fitted)
+    assert before > 1e-3 and after < 0.5 * before, (before, after)
+    assert rep["rounds"] and rep["rounds"][0]["measured"] > 10
+    fixed = np.setdiff1d(np.arange(len(V)), ids)
+    assert (fitted[fixed] == noisy[fixed]).all()      # the rest of the mesh (the face) stays where it is
