@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..jitarrays import from_jit, to_jit
+from ..jitarrays import to_jit
 from ..camera import Camera, stratified_pixel_samples
 from ..variant import ensure_variant
 
@@ -78,7 +78,9 @@ class MeshScene:
         surface (up to ``max_layers`` back faces).
         """
         d = np.asarray(directions, np.float64).reshape(-1, 3)
-        o = np.broadcast_to(np.asarray(origins, np.float64), d.shape).copy()
+        o = np.asarray(origins, np.float64)
+        if o.shape != (3,):     # one origin (a camera's centre) is broadcast on the device, not copied N times
+            o = np.broadcast_to(o, d.shape)
         hits = self._trace_once(o, d)
         if not cull_back:
             return hits
@@ -93,7 +95,7 @@ class MeshScene:
                 break
             todo = todo[back]
             offset[todo] += hits.t[todo] + 1e-5
-            again = self._trace_once(o[todo] + offset[todo, None] * d[todo], d[todo])
+            again = self._trace_once((o if o.ndim == 1 else o[todo]) + offset[todo, None] * d[todo], d[todo])
             hits.valid[todo], hits.tri[todo], hits.bary[todo] = again.valid, again.tri, again.bary
             hits.t[todo] = np.where(again.valid, again.t + offset[todo], np.inf)
         else:  # still behind back faces after max_layers: no hit
@@ -105,16 +107,28 @@ class MeshScene:
         return hits
 
     def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
-        mi = self._mi
-        ray = mi.Ray3f(to_jit(mi.Point3f, o.T), to_jit(mi.Vector3f, d.T))
+        """Closest hits of rays from ``o`` ((N, 3), or (3,): one origin for all) along ``d`` (N, 3)."""
+        mi, dr = self._mi, self._dr
+        if len(d) == 0:
+            return Hits(np.zeros(0, bool), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+        if o.ndim == 1:   # opaque, not a literal: a new camera position must not compile a new kernel
+            origin = mi.Point3f(*[dr.opaque(mi.Float, float(x), len(d)) for x in o])
+        else:
+            origin = to_jit(mi.Point3f, o.T)
+        ray = mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
         pi = self.scene.ray_intersect_preliminary(ray)
         # one kernel for every output: read back one by one (is_valid included), each re-ran the ray cast
-        self._dr.eval(pi.t, pi.prim_uv, pi.prim_index)
+        dr.eval(pi.t, pi.prim_uv, pi.prim_index)
         t_hit = np.asarray(pi.t)
         valid = t_hit < np.inf           # PreliminaryIntersection.is_valid(): t is inf where nothing was hit
-        uv = np.nan_to_num(from_jit(pi.prim_uv))
+        u, v = np.asarray(pi.prim_uv[0]), np.asarray(pi.prim_uv[1])
         tri = np.where(valid, np.asarray(pi.prim_index).astype(np.int64), -1)
-        bary = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1).astype(np.float64)
+        # (b0, b1, b2) = (1 - u - v, u, v) in float32, as the hit reports them, stored as float64; rows
+        # without a hit (whose u, v are undefined) are zero
+        bary = np.empty((len(t_hit), 3))
+        bary[:, 0] = 1 - u - v
+        bary[:, 1] = u
+        bary[:, 2] = v
         bary[~valid] = 0.0
         t = np.where(valid, t_hit, np.inf).astype(np.float64)
         return Hits(valid, tri, bary, t)
