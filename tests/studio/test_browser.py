@@ -111,6 +111,20 @@ def _open(d, served, expression=None):
     assert errors == [], errors
 
 
+def _click_fresh(d, css, tries=20):
+    """Click the element ``css`` names, found again if the page re-drew it in between (the expression list
+    is rebuilt whenever the session reloads)."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    for _ in range(tries):
+        try:
+            d.find_element("css selector", css).click()
+            return
+        except StaleElementReferenceException:
+            time.sleep(0.2)
+    raise AssertionError(f"{css} kept being re-drawn")
+
+
 def _idle(d):
     _wait(d, "return !studio.dirty && !studio.saving", what="the save")
 
@@ -572,7 +586,7 @@ def test_from_a_capture_folder_to_a_model_without_writing_json(browser, bare, st
         _wait(d, "return studio.info.template && studio.info.template.n_vertices > 60", timeout=120,
               what="the accepted template")
         for name in ("neutral", "smile"):
-            d.find_element("css selector", f"#expressions li[data-name={name}]").click()
+            _click_fresh(d, f"#expressions li[data-name={name}]")
             _wait(d, f"return studio.expr === '{name}' && !studio.loading", what=name)
             d.find_element("id", "propose").click()
             _wait(d, "return studio.proposal && studio.proposal.state", timeout=120, what="the proposal")
