@@ -215,6 +215,10 @@ def propose_expression(session, name: str) -> dict:
                 c: np.round(session.camera(c).project(p[None])[0][0], 3).tolist() for c in views}
     state["rotoscope"]["eyes_look_at"] = rot_src.get("eyes_look_at")
     flagged = flag_coarse(session, tpl, R, state["coarse"], tr.max_error, coarse, fp)
+    for v, why in flag_jaw(session, tpl, R, src, name, V, coarse, fp).items():
+        if v in state["coarse"]:
+            c = flagged["coarse"]
+            c[v] = (c[v] + "; " if v in c else "") + why
     for v, d in moved.items():
         flagged.setdefault("moved", {})[str(v)] = f"moved {d:.1f} px to the lips' end in the images"
     n_ok = int(ok.sum())
@@ -306,6 +310,55 @@ def flag_coarse(session, tpl, R, coarse_state: dict, max_error: np.ndarray, coar
                 out[str(v)] = (out.get(str(v), "") + "; " if str(v) in out else "") + \
                     f"{off:.1f} px from where the other coarse points' motion puts it"
     return {"coarse": out}
+
+
+def _lip_bottom_offset(region: np.ndarray, uv: np.ndarray) -> float | None:
+    """Median over the points ``uv`` (n, 2) of (lowest lip pixel in the point's column − the point's row);
+    None where no column holds lip."""
+    offs = []
+    for u, v in uv:
+        col = int(round(u))
+        if np.isfinite(u) and 0 <= col < region.shape[1]:
+            rows = np.flatnonzero(region[:, col])
+            if len(rows):
+                offs.append(rows.max() - v)
+    return float(np.median(offs)) if len(offs) >= 3 else None
+
+
+def flag_jaw(session, tpl, R, src: str, name: str, V: np.ndarray, coarse: np.ndarray, fp: float) -> dict:
+    """{vertex id: reason} for the coarse points below the mouth line when the followed template's lower lip
+    has moved differently from the lips' colour: in the two views facing the mouth, the lowest lip pixel
+    below the lower-lip margin's vertices, against the same in the reference ``R`` (its own images), shifted
+    by more than half a dot spacing — an open jaw that landed on the neighbouring dots moves its lip margin
+    with it, the lips' colour does not. Nothing when ``R`` is the template."""
+    from ..registration.dots import face_mask
+    from .features import lips_region
+
+    lo = np.asarray(tpl.margins.get("lip_lower", []), np.int64)
+    if src == "template" or len(lo) < 5 or src not in session.cap.expression_names:
+        return {}
+    lo = lo[1:-1]                              # not the corners
+    views = _best_views(session, V[lo], np.array([0.0, 0.0, 1.0]), 2)
+    shifts = []
+    for cn in views:
+        cam = session.camera(cn)
+        got = []
+        for expr, P in ((src, R.vertices), (name, V)):
+            img = session.float_image(expr, cn, "diffuse")
+            region = lips_region(img, face_mask(img))
+            got.append(None if region is None else _lip_bottom_offset(region, cam.project(P[lo])[0]))
+        if None not in got:
+            shifts.append(got[1] - got[0])
+    if not shifts:
+        return {}
+    shift = float(np.median(shifts))
+    if abs(shift) <= 0.5 * _dot_spacing(tpl) / fp:
+        return {}
+    lips = np.concatenate([np.asarray(tpl.margins.get(k, []), np.int64) for k in ("lip_upper", "lip_lower")])
+    mouth_y = float(R.vertices[lips, 1].mean())
+    why = (f"the jaw may sit on the wrong dots: the lips' lower edge in the images is {shift:+.1f} px from where "
+           "the followed jaw puts it")
+    return {str(int(v)): why for v in coarse if R.vertices[int(v), 1] < mouth_y and tpl.kinds[int(v)] != "lip_corner"}
 
 
 def _blurred(m: np.ndarray, sigma: float) -> np.ndarray:

@@ -68,3 +68,14 @@ def test_the_measurement_matches_dots_one_to_one_and_measures_curves():
     line = np.array([[0, 0], [10, 0]], float)
     assert m._curve_rms(np.array([[2, 1], [5, -1], [8, 1]], float), line) == 1.0
     assert abs(m._curve_rms(np.array([[13, 4]], float), line) - 5.0) < 1e-12       # past the end: to the end point
+
+
+def test_the_lips_lower_edge_below_the_lower_lip():
+    """The jaw flag's measure: the lowest lip pixel in each point's column, less the point's row (median)."""
+    from mifacerf.studio.proposals import _lip_bottom_offset
+
+    region = np.zeros((40, 40), bool)
+    region[10:20, 5:30] = True                    # lips from row 10 to 19
+    uv = np.array([[8.0, 15.0], [12.2, 14.0], [20.0, 16.0], [25.0, 15.0]])
+    assert _lip_bottom_offset(region, uv) == 4.0      # 19 - 15 (the median of 4, 5, 3, 4)
+    assert _lip_bottom_offset(region, uv + [20.0, 0.0]) is None      # no lip in those columns
