@@ -89,6 +89,26 @@ def outline_texels(depth: np.ndarray) -> np.ndarray:
     return seen & binary_dilation(np.isin(pieces, border[border > 0]))
 
 
+_OUTLINES: dict = {}
+
+
+def _cached_outline(depth: np.ndarray) -> np.ndarray:
+    """:func:`outline_texels` of a field's depth map, remembered by the map's content (a field's depth map is
+    the same every frame; the labelling costs a few ms a chunk, the key 0.5 ms)."""
+    import hashlib
+
+    d = np.ascontiguousarray(depth, np.float32)
+    key = (d.shape, hashlib.sha1(d.tobytes()).digest())
+    ids = _OUTLINES.get(key)
+    if ids is None:
+        if len(_OUTLINES) >= 2048:
+            _OUTLINES.pop(next(iter(_OUTLINES)))
+        ids = _OUTLINES[key] = np.flatnonzero(outline_texels(d)).astype(np.int32)
+    edge = np.zeros(d.shape, bool)
+    edge.reshape(-1)[ids] = True
+    return edge
+
+
 #: the relative weight of a render chunk that sees a point only through texels on the outline
 OUTLINE_WEIGHT = 1e-3
 
@@ -100,7 +120,7 @@ def mark_outline(image: np.ndarray, depth: np.ndarray, mark: bool = True) -> np.
     image = np.asarray(image, np.float32)
     if not mark:
         return image
-    edge = outline_texels(depth)
+    edge = _cached_outline(depth)
     if not edge.any():
         return image
     out = image.copy()
