@@ -456,7 +456,8 @@ def with_the_neck(session, tpl, R, moved: np.ndarray, dots: np.ndarray, maps: di
 
 def follow_dots(session, tpl, R, maps: dict, search_px: float, rounds: int = 8):
     """The template of the reference ``R`` carried onto this expression by its dots: a rigid alignment
-    (:func:`align_rigidly`), then rounds in the spirit of the progressive snap (paper §4.1): every
+    (:func:`align_rigidly`; the neck blended, :func:`with_the_neck`), then rounds in the spirit of the
+    progressive snap (paper §4.1): every
     fiducial not yet placed starts from its prediction corrected by the placed fiducials round it on the
     template mesh (:func:`~mifacerf.registration.snap.predict_from_neighbours`, so the mouth's opening
     separates the jaw from the upper lip), snaps to the nearest dot peak within ``search_px`` in every
