@@ -126,7 +126,8 @@ class MeshScene:
         # (b0, b1, b2) = (1 - u - v, u, v) in float32, as the hit reports them, stored as float64; rows
         # without a hit (whose u, v are undefined) are zero
         bary = np.empty((len(t_hit), 3))
-        bary[:, 0] = 1 - u - v
+        with np.errstate(over="ignore", invalid="ignore"):   # the rows without a hit hold anything
+            bary[:, 0] = 1 - u - v
         bary[:, 1] = u
         bary[:, 2] = v
         bary[~valid] = 0.0
