@@ -14,6 +14,7 @@ quarter of the variance of their difference).
 Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--env sky]``;
 ``--parts EXPRESSION``: eyes, teeth and mouth under the material, per part (:func:`parts`);
 ``--hat SYNTH``: the shadow of a hat on the face against the path-traced truth (:func:`hat_shadow`);
+``--regions [--integrators unshadowed]``: where the error lies, per pixel class (:func:`regions`);
 ``--emitters``: every kind of emitter against its reference (:func:`emitters`);
 ``--animation [--integrators facerf,direct] [--size 32]``: an animation loop through ``mi.traverse``
 (expression and pose per frame), kernels compiled / launched and seconds per frame (:func:`animation`).
@@ -124,12 +125,16 @@ def directional_oracle(model, lights=None, size: int = 48, spp: int = 64, integr
 
 
 def _reference(mi, scene):
-    """The reference image (H, W, 3), the face's pixels away from its outline (eroded full coverage) and seconds."""
+    """The reference image (H, W, 3), the face's pixels away from its outline (eroded full coverage of the face
+    shape's pixels: before 2026-12-02 the eroded alpha alone, which under an environment is 1 on the background
+    too — the envmap rows then averaged 40–60 % background pixels into the PSNR and the brightness) and seconds."""
     from scipy.ndimage import binary_erosion
 
     t0 = time.perf_counter()
     exact = np.asarray(mi.render(scene))
-    return exact[..., :3], binary_erosion(exact[..., 3] > 0.999, iterations=1), time.perf_counter() - t0
+    seconds = time.perf_counter() - t0
+    face = _labels(mi, scene, exact.shape[0])[0] >= 0 if exact.shape[0] == exact.shape[1] else True
+    return exact[..., :3], binary_erosion((exact[..., 3] > 0.999) & face, iterations=1), seconds
 
 
 def _passes(mi, scene, spp: int):
@@ -294,7 +299,8 @@ def parts(model, expression: str, env: str = "interior", size: int = 128, spp: i
           integrator: str = "direct") -> list[dict]:
     """Eyes, teeth and mouth interior under the material against the ``facerf`` integrator (which shades them
     from their reference expressions with ray-traced visibility and a re-synthesised cornea highlight), per
-    part and for the skin: pixels, PSNR and mean material / exact. The camera looks at the head's centre from
+    part and for the skin: pixels, PSNR and mean material / exact (``integrator="unshadowed"``: the material
+    without shadow rays, :func:`regions`). The camera looks at the head's centre from
     half way along the direction of the model's middle capture camera (``size``², focal 2.5 ``size``)."""
     from ..camera import Camera
     from ..environment import GENERATORS, cache_dir, generated
@@ -314,7 +320,8 @@ def parts(model, expression: str, env: str = "interior", size: int = 128, spp: i
     emitter = {"type": "envmap", "filename": str(env)}
     exact_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, expression)
     ref, _, t_ref = _reference(mi, exact_scene)
-    passes, seconds = _passes(mi, _scene(mi, model, {"type": integrator}, emitter, camera, spp, expression), spp)
+    name = _register_unshadowed(mi) if integrator == "unshadowed" else integrator
+    passes, seconds = _passes(mi, _scene(mi, model, {"type": name}, emitter, camera, spp, expression), spp)
     mean = passes.mean(0)
     label, _ = _labels(mi, exact_scene, size)
     rows = []
@@ -471,6 +478,120 @@ def animation(model, integrator: str = "facerf", frames: int = 10, size: int = 3
     return rows
 
 
+def _register_unshadowed(mi) -> str:
+    """A ``facerf_unshadowed`` integrator: at the camera ray's hit, the BSDF against one emitter sample with no
+    shadow ray (the material's own evaluation, apart from visibility); background black."""
+    import drjit as dr
+
+    class Unshadowed(mi.SamplingIntegrator):
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            si = scene.ray_intersect(ray, active)
+            valid = si.is_valid()
+            ds, weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, valid)
+            value = si.bsdf(ray).eval(mi.BSDFContext(), si, si.to_local(ds.d), valid)
+            return dr.select(valid, value * weight, 0.0), valid, []
+
+    mi.register_integrator("facerf_unshadowed", lambda props: Unshadowed(props))
+    return "facerf_unshadowed"
+
+
+def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) -> np.ndarray:
+    """(size, size): per pixel centre on the skin, the share of the environment's light in front of the smooth
+    surface (the barycentric blend of the vertex normals) that lies *below* the hit triangle's plane — light
+    the integrator's shadow rays cannot pass (they start below the surface) although the captured field,
+    whose real surface follows the smooth normal, holds it. NaN off the skin."""
+    import drjit as dr
+
+    from ..environment import latlong_grid
+    from ..geometry.visibility import vertex_normals
+    from ..imageio import read_exr
+
+    face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
+    idx = dr.arange(mi.UInt32, size * size)
+    uv = mi.Point2f((mi.Float(idx % size) + 0.5) / size, (mi.Float(idx // size) + 0.5) / size)
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    tri = np.asarray(si.prim_index).astype(np.int64)
+    skin = np.asarray(si.is_valid()) & (np.asarray(si.shape) == np.asarray(mi.ShapePtr(face))) \
+        & (tri < face.geometry.n_skin_triangles)
+    X, F = face.pose_state.target, model.triangles
+    t = np.where(skin, tri, 0)
+    ng = np.cross(X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 0]])
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-30)
+    A = X[F[t]]
+    p = np.asarray(si.p).T
+    e0, e1, d = A[:, 1] - A[:, 0], A[:, 2] - A[:, 0], p - A[:, 0]
+    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+    d20, d21 = (d * e0).sum(1), (d * e1).sum(1)
+    den = np.maximum(d00 * d11 - d01 ** 2, 1e-30)
+    b1, b2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    b = np.stack([1 - b1 - b2, b1, b2], 1)
+    ns = (b[:, :, None] * vertex_normals(X, F)[F[t]]).sum(1)
+    ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-30)
+    env = read_exr(env_path)[..., :3].mean(-1)
+    dirs, solid = latlong_grid(env.shape[0])
+    w, D = (env * solid).reshape(-1), dirs.reshape(-1, 3)
+    front = (ns @ D.T) > 0
+    below = (ng[t] @ D.T) < 0
+    share = ((front & below) * w).sum(1) / np.maximum((front * w).sum(1), 1e-30)
+    return np.where(skin, share, np.nan).reshape(size, size)
+
+
+def regions(model, env: str = "interior", size: int = 96, spp: int = 64, integrator: str = "direct",
+            bsdf=None, facet_share: float = 0.2) -> dict:
+    """Where the material's error against the exact path lies (the camera of :func:`compare`, two passes of
+    ``spp``). Per pixel class over the pixels of :func:`compare` — the skin, each part, the outline band (the
+    face's pixels within 2 of the background), the *facet-blocked* skin (:func:`_facet_blocked` ≥ ``facet_share``) —:
+    pixels, share of the squared error, share of the squared *bias* (error less the passes' noise), mean
+    material / exact; and the share of the squared error in the worst 1 % / 5 % of pixels. ``integrator``
+    ``"unshadowed"``: the material against emitter samples without shadow rays (its evaluation alone)."""
+    from scipy.ndimage import binary_erosion
+
+    from ..camera import Camera
+    from ..environment import GENERATORS, cache_dir, generated
+    from ..rendering.parts import PARTS
+    from ..rendering.scene_assets import open_model
+    from ..variant import ensure_plugins
+
+    mi = ensure_plugins()
+    if env in GENERATORS:
+        generated(env)
+        env = str(cache_dir() / "environments" / f"{env}-128.exr")
+    emitter = {"type": "envmap", "filename": str(env)}
+    camera = Camera.look_at("eval", [0.12, 0.1, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.0)
+    exact_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, None)
+    ref, mask, _ = _reference(mi, exact_scene)
+    label, _ = _labels(mi, exact_scene, size)
+    name = _register_unshadowed(mi) if integrator == "unshadowed" else integrator
+    spec = {"type": name} if name != "path" else {"type": "path", "max_depth": 3}
+    passes, seconds = _passes(mi, _scene(mi, model, spec, emitter, camera, spp, None, bsdf), spp)
+    mean = passes.mean(0)
+    if integrator == "unshadowed":   # no background on this integrator: the face only
+        mask &= label >= 0
+    err = ((mean - ref) ** 2).sum(-1)
+    bias = err - (((passes[0] - passes[1]) / 2) ** 2).sum(-1)
+    tot, tot_b = err[mask].sum(), max(bias[mask].sum(), 1e-30)
+    facet = _facet_blocked(mi, exact_scene, open_model(model).model, size, str(env))
+    classes = {"skin": label == 0, **{p: label == k + 1 for k, p in enumerate(PARTS)},
+               "outline band": (label >= 0) & ~binary_erosion(label >= 0, iterations=2),
+               f"facet-blocked skin (≥ {facet_share:g})": np.nan_to_num(facet, nan=0.0) >= facet_share}
+    rows = []
+    for k, sel in classes.items():
+        sel = sel & mask
+        if sel.sum() < 1:
+            continue
+        rows.append({"class": k, "pixels": int(sel.sum()), "error_share": round(float(err[sel].sum() / tot), 3),
+                     "bias_share": round(float(bias[sel].sum() / tot_b), 3),
+                     "brightness": round(float(mean[sel].mean() / max(ref[sel].mean(), 1e-9)), 4)})
+    worst = np.sort(err[mask])[::-1].cumsum() / tot
+    n = mask.sum()
+    return {"psnr": round(psnr(mean, ref, mask), 2), "noise_floor": round(psnr(passes[0], passes[1], mask, ref), 2),
+            "brightness": round(float(mean[mask].mean() / ref[mask].mean()), 4),
+            "worst_1pc": round(float(worst[max(int(0.01 * n) - 1, 0)]), 3),
+            "worst_5pc": round(float(worst[max(int(0.05 * n) - 1, 0)]), 3), "rows": rows,
+            "seconds": round(seconds, 1), "spp": f"2 x {spp}"}
+
+
 def format_rows(rows: list[dict]) -> str:
     out = ["| integrator | spp | PSNR vs exact (dB) | noise floor (dB) | mean material / exact | s / pass |",
            "|---|---|---|---|---|---|"]
@@ -507,6 +628,9 @@ def main(argv=None) -> None:
                     "of the synthetic subject of this synth output instead (hat_shadow)")
     ap.add_argument("--parts", metavar="EXPRESSION", help="eyes, teeth and mouth under the material against the "
                     "facerf integrator instead, per part (parts)")
+    ap.add_argument("--regions", action="store_true", help="where the error lies instead: per pixel class "
+                    "(skin, parts, outline band, facet-blocked skin) at --size (regions); --integrators "
+                    "unshadowed: the material without shadow rays")
     ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
     bsdf = {"self_visibility": False} if a.no_self_visibility else {}
@@ -515,6 +639,13 @@ def main(argv=None) -> None:
     if a.visibility_grid is not None:
         bsdf["visibility_grid"] = a.visibility_grid
     bsdf = bsdf or None
+    if a.regions:
+        out = regions(a.model, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0], bsdf=bsdf)
+        rows = out.pop("rows")
+        print(out)
+        for r in rows:
+            print(r)
+        return
     if a.parts:
         for r in parts(a.model, a.parts, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0]):
             print(r)

@@ -46,3 +46,18 @@ def test_point_and_spot_lights_far_along_a_direction_match_the_directional_light
     assert ref > 0
     for name in ("point", "spot"):
         assert abs(img[name][..., :3][mask].mean() / ref - 1) < 0.02, name
+
+
+@pytest.mark.slow
+def test_regions_splits_the_error_by_pixel_class(toy_model, mi):
+    """evaluation.material.regions: per pixel class (the toy has skin, no parts) its pixels, its share of the
+    squared error and the brightness; the material without shadow rays ('unshadowed') renders the face too."""
+    from mifacerf.evaluation.material import regions
+
+    for integ in ("direct", "unshadowed"):
+        out = regions(toy_model.root, env="sky", size=16, spp=4, integrator=integ)
+        by = {r["class"]: r for r in out["rows"]}
+        assert "skin" in by and by["skin"]["pixels"] > 20
+        assert 0 < by["skin"]["error_share"] <= 1.0001
+        assert 0 < out["worst_1pc"] <= out["worst_5pc"] <= 1
+        assert 0.5 < out["brightness"] < 1.5, out
