@@ -61,10 +61,8 @@ def _key(model):
     return str(root), (marker[0].stat().st_mtime_ns if marker else 0)
 
 
-def trace(vertices: np.ndarray, triangles: np.ndarray, directions: np.ndarray, eps: float = EPS) -> np.ndarray:
-    """(T, L) float32: 1 where a ray from each vertex (offset along its normal by ``eps`` × the mesh's
-    bounding-box diagonal) towards each direction meets no triangle of the mesh, else 0."""
-    from ..geometry.visibility import vertex_normals
+def _mesh_scene(vertices, triangles):
+    """(mitsuba module, a Mitsuba scene of the one mesh, vertices (T, 3) float64, triangles (F, 3) int64)."""
     from ..jitarrays import to_jit
     from ..variant import ensure_variant
 
@@ -76,7 +74,15 @@ def trace(vertices: np.ndarray, triangles: np.ndarray, directions: np.ndarray, e
     params["vertex_positions"] = to_jit(mi.Float, V.reshape(-1).astype(np.float32))
     params["faces"] = to_jit(mi.UInt32, F.reshape(-1).astype(np.uint32))
     params.update()
-    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    return mi, mi.load_dict({"type": "scene", "mesh": mesh}), V, F
+
+
+def trace(vertices: np.ndarray, triangles: np.ndarray, directions: np.ndarray, eps: float = EPS) -> np.ndarray:
+    """(T, L) float32: 1 where a ray from each vertex (offset along its normal by ``eps`` × the mesh's
+    bounding-box diagonal) towards each direction meets no triangle of the mesh, else 0."""
+    from ..geometry.visibility import vertex_normals
+
+    mi, scene, V, F = _mesh_scene(vertices, triangles)
     n = vertex_normals(V, F)
     scale = float(np.linalg.norm(V.max(0) - V.min(0))) or 1.0
     o = V + n * eps * scale
@@ -162,18 +168,7 @@ def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: in
     """(N, D) bool: a ray from each point towards each direction escapes the mesh. The origin is offset along
     the point's (geometric) normal to the side the ray leaves by, as Mitsuba spawns its shadow rays, so a
     direction below the triangle's plane is blocked by the surface itself (as under Mitsuba's integrators)."""
-    from ..jitarrays import to_jit
-    from ..variant import ensure_variant
-
-    mi = ensure_variant()
-    V = np.asarray(vertices, np.float64)
-    F = np.asarray(triangles, np.int64).reshape(-1, 3)
-    mesh = mi.Mesh("self", len(V), len(F))
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = to_jit(mi.Float, V.reshape(-1).astype(np.float32))
-    params["faces"] = to_jit(mi.UInt32, F.reshape(-1).astype(np.uint32))
-    params.update()
-    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    mi, scene, V, F = _mesh_scene(vertices, triangles)
     scale = float(np.linalg.norm(V.max(0) - V.min(0))) or 1.0
     eps = 1e-4 * scale
     O, N, D = (np.asarray(x, np.float64) for x in (origins, normals, directions))
