@@ -34,6 +34,7 @@ import numpy as np
 
 from ..jitarrays import to_jit
 from ..variant import ensure_variant
+from .frame import OUTLINE_WEIGHT, outline_texels
 from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from .light_interp import LightInterpolator
 from .relight import to_device_f16
@@ -241,7 +242,7 @@ class MaterialState:
     def _upload(self, sources: list[int]) -> None:
         """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images."""
         mi, model, C = self.mi, self.model, self.C
-        index_parts, rf_parts, depth_parts = [], [], []
+        index_parts, rf_parts, depth_parts, outline_parts = [], [], [], []
         offsets = np.zeros(len(model.expressions) * C, np.uint32)
         img_off, row_off = 0, 0
         for s in sources:
@@ -258,6 +259,8 @@ class MaterialState:
                     for kk in range(3):   # each texel's response to its triangle's vertices, by barycentrics
                         np.add.at(self._lum[s], model.triangles[f.tri, kk], f.bary[:, kk, None] * lum)
                     depth_parts.append(np.asarray(f.depth, np.float32))
+                    # texels on the subject's outline: read as the exact path reads them (frame.outline_texels)
+                    outline_parts.append(outline_texels(f.depth_map())[f.pixels[:, 0], f.pixels[:, 1]].astype(np.float32))
                     row_off += len(f)
                 index_parts.append(idx)
                 offsets[s * C + c] = img_off
@@ -268,6 +271,7 @@ class MaterialState:
         self.field_offset = to_jit(mi.UInt32, offsets)
         self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
         self.texel_depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1, np.float32))
+        self.texel_outline = to_jit(mi.Float, np.concatenate(outline_parts) if outline_parts else np.zeros(1, np.float32))
         self.uploaded = list(sources)
 
     def _upload_visibility(self, sources: list[int]) -> None:
@@ -408,7 +412,9 @@ class MaterialState:
                 foff = dr.gather(UInt32, self.field_offset, u * C + c, usec)
                 col = [Float(0), Float(0), Float(0)]
                 col_d = [Float(0), Float(0), Float(0)]
-                cov, cov_d = Float(0), Float(0)
+                col_i = [Float(0), Float(0), Float(0)]
+                col_di = [Float(0), Float(0), Float(0)]
+                cov, cov_d, cov_i, cov_di = Float(0), Float(0), Float(0), Float(0)
                 for pix, wgt, inside in bilinear_taps(uu, vv, wi, hi, usec & (zc > 0)):
                     t = dr.gather(Int32, self.texel_index, foff + pix, inside)
                     ok = inside & (t >= 0)
@@ -416,6 +422,7 @@ class MaterialState:
                     tsel = UInt32(dr.select(ok, t, 0))
                     seen = ok & (dr.abs(dr.gather(Float, self.texel_depth, tsel, ok) - dist) <= tol)
                     tw_d = dr.select(seen, wgt, 0.0)
+                    off_outline = 1.0 - dr.gather(Float, self.texel_outline, tsel, ok)
                     row = tsel * L3
                     for ch in range(3):
                         val = Float(0)
@@ -424,18 +431,29 @@ class MaterialState:
                                                                  row + light_ids[li] * 3 + ch, ok))
                         col[ch] += tw * val
                         col_d[ch] += tw_d * val
+                        col_i[ch] += tw * off_outline * val
+                        col_di[ch] += tw_d * off_outline * val
                     cov += tw
                     cov_d += tw_d
+                    cov_i += tw * off_outline
+                    cov_di += tw_d * off_outline
                 seen = usec & (cov_d > 1e-3)
                 good = usec & (cov > 1e-3)
-                inv_d = dr.select(seen, dr.rcp(cov_d), 0.0)
-                inv = dr.select(good, dr.rcp(cov), 0.0)
+                # as LitFrame.shade: the texels off the outline where the camera has any for the point, and a
+                # camera that sees it only through outline texels weighs OUTLINE_WEIGHT
+                inner_d, inner = cov_di > 1e-3, cov_i > 1e-3
+                sel_d = [dr.select(inner_d, col_di[ch] * dr.rcp(cov_di), col_d[ch] * dr.select(seen, dr.rcp(cov_d), 0.0))
+                         for ch in range(3)]
+                sel = [dr.select(inner, col_i[ch] * dr.rcp(cov_i), col[ch] * dr.select(good, dr.rcp(cov), 0.0))
+                       for ch in range(3)]
+                low = dr.opaque(Float, OUTLINE_WEIGHT)
+                kd, ka = dr.select(inner_d, 1.0, low), dr.select(inner, 1.0, low)
                 # accumulators: (near cameras, depth-tested), (own cameras, depth-tested), (own, any texel)
-                for t_, (wt, cc, cinv_) in enumerate(((dr.select(seen, bk * w * wp, 0.0), col_d, inv_d),
-                                                      (dr.select(seen, bk * w * wf, 0.0), col_d, inv_d),
-                                                      (dr.select(good, bk * w * wf, 0.0), col, inv))):
+                for t_, (wt, cc) in enumerate(((dr.select(seen, bk * w * wp * kd, 0.0), sel_d),
+                                               (dr.select(seen, bk * w * wf * kd, 0.0), sel_d),
+                                               (dr.select(good, bk * w * wf * ka, 0.0), sel))):
                     for ch in range(3):
-                        acc[4 * t_ + ch] = acc[4 * t_ + ch] + wt * cc[ch] * cinv_
+                        acc[4 * t_ + ch] = acc[4 * t_ + ch] + wt * cc[ch]
                     acc[4 * t_ + 3] = acc[4 * t_ + 3] + wt
             return (i + 1, *acc)
 
