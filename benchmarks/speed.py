@@ -2,12 +2,15 @@
 next frame is drawn, so a loaded machine slows them alike (compare the ratios, not the seconds).
 
     python benchmarks/speed.py MODEL [--configs exact,sh4,pca8] [--sizes 256,1024] [--frames 5]
-                               [--sequence 120] [--cold] [--skips] [--json OUT.json]
+                               [--sequence 120] [--cold] [--skips] [--warm] [--json OUT.json]
 
 Per configuration and size: median seconds per frame over ``--frames`` fresh frames (random blends of
 two captured expressions, yaw ±25°, pitch ±6°, 4 spp, sky; ``mifacerf bench``'s frames) after a warm-up frame, the median of each
 stage (``RenderStats.times``), the Dr.Jit kernels launched and compiled per frame (kernel history), and
-the PSNR of the frame against the ``exact`` configuration's (face pixels, alpha = 1).
+the PSNR of the frame against the ``exact`` configuration's (face pixels, alpha = 1). ``--warm``: every
+timed frame is rendered once before (its fields loaded: the stage ``load`` is then ~0, a warm model).
+A frame's seconds include ``Face.target`` and ``Face.parts`` (the target mesh and part poses of its
+blend), which no render stage counts.
 ``--sequence N``: an animation of N frames at the first size from one camera (the weights travel
 smoothly through four expressions, the head turns a few degrees): frames per second over all N,
 kernels compiled after the first frame. ``--skips``: each skip of the exact path on its own (time with
@@ -72,7 +75,7 @@ def render(face, renderer, fr, size, env, spp=4, seed=0, stats=None):
                            parts=face.parts(fr["expression"]))
 
 
-def frames_table(face, configs, sizes, n_frames, env, seed):
+def frames_table(face, configs, sizes, n_frames, env, seed, warm=False):
     import drjit as dr
 
     from mifacerf.rendering.renderer import RenderStats
@@ -81,6 +84,10 @@ def frames_table(face, configs, sizes, n_frames, env, seed):
     rows = []
     for size in sizes:
         frames = draw_frames(face, n_frames + 1, seed + size)
+        if warm:   # a warm model: every frame's fields loaded and its lighting nodes evaluated before timing
+            for fr in frames[1:]:
+                for c in configs:
+                    render(face, renderers[c], fr, size, env)
         per = {c: {"seconds": [], "stages": [], "kernels": [], "compiled": [], "psnr_exact": []} for c in configs}
         for k, fr in enumerate(frames):
             ref = None
@@ -205,6 +212,8 @@ def main(argv=None):
     ap.add_argument("--sequence-config", default="exact")
     ap.add_argument("--cold", action="store_true")
     ap.add_argument("--skips", action="store_true", help="measure each skip of the exact path in isolation")
+    ap.add_argument("--warm", action="store_true",
+                    help="render every timed frame once before timing it (fields loaded: the issue's warm model)")
     ap.add_argument("--env", default="sky")
     ap.add_argument("--seed", type=int, default=int(time.time()))
     ap.add_argument("--json", default=None)
@@ -227,7 +236,7 @@ def main(argv=None):
     face = mf.load_model(a.model)
     env = face.environment(a.env)
     if a.frames > 0:
-        report["frames"] = frames_table(face, configs, sizes, a.frames, env, a.seed)
+        report["frames"] = frames_table(face, configs, sizes, a.frames, env, a.seed, a.warm)
         print("| config | size | median s/frame | × exact | PSNR vs exact (dB) | kernels/frame | compiled/frame | "
               "stages (median s) |\n|---|---|---|---|---|---|---|---|")
         for r in report["frames"]:
