@@ -18,8 +18,9 @@ a live holder is reported as ``locked by PID … on HOST since …`` (and waited
 or refused). An *ephemeral* lock (beside a user's own files: a render's output, the demo's folder)
 deletes its file on release.
 
-Files replaced together (:func:`replace_together`): temporary files renamed over their
-destinations through a journal that the next writer finishes (``mifacerf render -o``'s EXR + PNG).
+Files replaced together (:func:`replacing`, over :func:`replace_together`): temporary files renamed
+over their destinations through a journal that the next writer finishes (``mifacerf render -o``'s EXR
++ PNG).
 """
 from __future__ import annotations
 
@@ -385,6 +386,43 @@ def finish_replacing(journal: str | os.PathLike, error: type[Exception] = OSErro
     journal.unlink()
     fsync_dir(journal.parent)
     return True
+
+
+@contextmanager
+def replacing(target: str | os.PathLike, companions=(), error: type[Exception] = OSError, what: str = "write"):
+    """``with replacing(path, (".png",)) as tmp:`` write ``tmp`` (and ``tmp.with_suffix(s)`` for each
+    companion suffix); when the block ends they replace ``path`` and its companions as one transaction.
+
+    ``path``'s ephemeral lock (:class:`FolderLock`; a second writer is refused, ``error`` made a
+    :class:`mifacerf.errors.RefusedError`) is held throughout. First a replacement interrupted by a kill
+    is finished (:func:`finish_replacing`) and temporaries of a writer killed before its renames are
+    deleted; then the block writes; then :func:`replace_together` renames through the journal
+    ``.<name>.replacing``. A block that raises leaves the previous files and no temporary.
+    """
+    target = Path(os.path.abspath(target))
+    folder, stem = target.parent, f".{target.name}."
+    journal = folder / f"{stem}replacing"
+    with FolderLock(target, error, wait=False, what=what, ephemeral=True):
+        finish_replacing(journal, error)
+        for name in os.listdir(folder):
+            for start in (stem, f".{journal.name}."):     # (and of the journal's own atomic write)
+                if name.startswith(start) and ".tmp" in name[len(start):]:
+                    (folder / name).unlink(missing_ok=True)
+        tmp = folder / f"{stem}{os.getpid()}-{os.urandom(4).hex()}.tmp{target.suffix}"
+        pairs = [(tmp.with_suffix(s), target.with_suffix(s)) for s in companions
+                 if tmp.with_suffix(s) != tmp] + [(tmp, target)]
+        try:
+            yield tmp
+            replace_together(pairs, journal)
+        finally:
+            if journal.exists():             # failed between two renames: roll forward now if the disk
+                try:                         # lets us (else the next writer does)
+                    finish_replacing(journal, error)
+                except (OSError, error):
+                    pass
+            if not journal.exists():
+                for t, _ in pairs:
+                    t.unlink(missing_ok=True)
 
 
 # ---------------------------------------------------------------- whole-folder transactions

@@ -65,10 +65,7 @@ def _inside(path, folders) -> str | None:
 @click.option("-t", "--threads", type=click.IntRange(min=1), default=None, help="CPU threads (default: all).")
 def render_cmd(scene_or_model, output, defines, spp, threads):
     """Render a scene file (scenes/*.xml) that uses mifacerf's plugins."""
-    import os
-    import secrets
-
-    from ..formats.files import FolderLock, finish_replacing, replace_together
+    from ..formats.files import replacing
     from .scenefile import render_scene_file
 
     if Path(scene_or_model).is_dir():
@@ -79,38 +76,14 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
     bad = [d for d in defines if "=" not in d]
     if bad:
         raise click.BadParameter(f"expected NAME=VALUE, got {bad[0]!r}", param_hint="-D")
-    out = Path(os.path.abspath(output))
-    png = out.with_suffix(".png")
-    # The EXR and its PNG replace the old pair as one transaction: written under temporary names beside
-    # OUTPUT, then renamed through a journal (.<name>.replacing) that the next render to OUTPUT finishes
-    # if this one is killed between the two renames. One render at a time per OUTPUT: its lock
-    # (.<name>.lock, deleted when the render ends) refuses a second one (exit 3). A failed, killed or
-    # out-of-space render leaves the previous pair.
-    journal = out.parent / f".{out.name}.replacing"
-    stem = f".{out.name}."
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with FolderLock(out, ValueError, wait=False, what="render to this output (mifacerf render -o)", ephemeral=True):
-        finish_replacing(journal, ValueError)
-        for name in os.listdir(out.parent):            # temporaries of a render killed before its renames
-            for start in (stem, f".{journal.name}."):  # (and of its journal's own atomic write)
-                if name.startswith(start) and ".tmp" in name[len(start):]:
-                    (out.parent / name).unlink(missing_ok=True)
-        tmp = out.parent / f"{stem}{os.getpid()}-{secrets.token_hex(4)}.tmp{out.suffix}"
-        try:
+    # the EXR and its PNG replace the old pair as one transaction (formats.files.replacing): one render at
+    # a time per OUTPUT (a second is refused, exit 3); a failed, killed or out-of-space render leaves the
+    # previous pair, and one killed between its two renames is completed by the next render to OUTPUT
+    try:
+        with replacing(output, (".png",), ValueError, what="render to this output (mifacerf render -o)") as tmp:
             render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
-            pairs = [(tmp.with_suffix(".png"), png)] if tmp.with_suffix(".png") != tmp else []
-            replace_together(pairs + [(tmp, out)], journal)
-        except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
-            raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
-        finally:
-            if journal.exists():                       # failed between two renames: roll forward now if
-                try:                                   # the disk lets us (else the next render does)
-                    finish_replacing(journal, ValueError)
-                except (OSError, ValueError):
-                    pass
-            if not journal.exists():
-                for p in (tmp, tmp.with_suffix(".png")):
-                    p.unlink(missing_ok=True)
+    except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
+        raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
     click.echo(f"wrote {output}")
 
 
