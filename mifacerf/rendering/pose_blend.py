@@ -14,16 +14,33 @@ from __future__ import annotations
 import numpy as np
 
 
+#: logm of the rigid motions blended so far, by their bytes: the captured head poses are the same every
+#: frame (and a frame blends them twice, for the skin and for the parts), their logarithm is not
+_LOGS: dict[bytes, np.ndarray] = {}
+
+
+def _log(T: np.ndarray) -> np.ndarray:
+    from scipy.linalg import logm
+
+    key = T.tobytes()
+    L = _LOGS.get(key)
+    if L is None:
+        if len(_LOGS) >= 4096:
+            _LOGS.clear()
+        L = _LOGS[key] = np.real(logm(T))
+    return L
+
+
 def blend_motions(Ts, w) -> np.ndarray:
     """(4, 4) weighted blend of rigid motions ``Ts`` (n, 4, 4) with weights ``w`` (n,) summing to 1:
     ``expm(Σ w_i logm(T_i))`` (the log-Euclidean mean on SE(3))."""
-    from scipy.linalg import expm, logm
+    from scipy.linalg import expm
 
     Ts = np.asarray(Ts, np.float64)
     w = np.asarray(w, np.float64)
     if len(Ts) == 1:
         return Ts[0].copy()
-    L = sum(wi * np.real(logm(T)) for wi, T in zip(w, Ts))
+    L = sum(wi * _log(T) for wi, T in zip(w, Ts))
     out = np.real(expm(L))
     out[3] = (0.0, 0.0, 0.0, 1.0)
     return out
