@@ -53,6 +53,7 @@ RULES = [
     (r"manifests", r"second_is_refused", (None, "two processes", "clear error")),
     (r"test_output_transactions", r"dropped_unfinished", (None, "failed step / refused input", "recovered")),
     (r"test_output_transactions", r"next_render_finishes", ("render", "kill (SIGKILL)", "recovered")),
+    (r"test_output_transactions", r"cannot_exist", ("render", "bad option value", "clear error")),
     (r"test_output_transactions", r"ephemeral_lock", ("formats (files, locks)", "two processes", "recovered")),
     (r"transactions|atomic|manifests", r"sigkill|interrupted", (None, "kill (SIGKILL)", "recovered")),
     (r"transactions|atomic|manifests", r"full_disk", (None, "full disk (ENOSPC)", "recovered")),

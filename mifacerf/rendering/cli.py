@@ -83,6 +83,8 @@ def render_cmd(scene_or_model, output, defines, spp, threads):
         with replacing(output, (".png",), ValueError, what="render to this output (mifacerf render -o)") as tmp:
             render_scene_file(scene_or_model, tmp, dict(d.split("=", 1) for d in defines), spp=spp, threads=threads)
     except (KeyError, ValueError, FileNotFoundError, RuntimeError) as exc:
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise                         # an I/O error: '<file>: <reason>' from the top of the command
         raise click.ClickException(str(exc.args[0]) if exc.args else str(exc)) from exc
     click.echo(f"wrote {output}")
 

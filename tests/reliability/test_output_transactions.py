@@ -328,3 +328,14 @@ def test_the_next_render_finishes_a_killed_renders_pair_and_removes_its_temporar
     assert r.exit_code == 1 and "Traceback" not in r.output, r.output
     assert snapshot(tmp_path) == {"render.exr": b"new exr", "render.png": b"new png",
                                   "scene.xml": scene.read_bytes()}
+
+
+def test_a_render_into_a_folder_that_cannot_exist_names_it(tmp_path):
+    """-o under a path that cannot be made (a file where a folder is needed): one line naming that path
+    (before: 'error: 2', the bare errno of the lock's mkdir)."""
+    out, scene, before = _pair(tmp_path)
+    r = _render(scene, "-o", tmp_path / "render.exr" / "x.exr")
+    assert r.exit_code == 1 and "Traceback" not in r.output, r.output
+    first = r.stderr.strip().splitlines()[0]
+    assert f"{tmp_path / 'render.exr'}: File exists" in first, r.stderr     # (mkdir's own reason)
+    assert snapshot(tmp_path) == before
