@@ -101,7 +101,8 @@ class FaceModel:
         for name, wt in w.items():
             W[:, m.expression_index(name)] = wt
         # the faces blended in their head frames, the head poses as rigid motions (issue 16: blends that turn the head)
-        geometry, _ = blend_geometry(m.vertices, m.head_pose, {m.expression_index(n): wt for n, wt in w.items()})
+        geometry, head = blend_geometry(m.vertices, m.head_pose, {m.expression_index(n): wt for n, wt in w.items()})
+        self._blended_head = (tuple(w.items()), head)   # parts() of the same blend reuses it (one expm a frame)
         return geometry, W
 
     def parts(self, expression=None, mesh=None) -> dict:
@@ -113,7 +114,9 @@ class FaceModel:
             return {}
         if mesh is not None:
             return target_parts_from_mesh(self.model, np.asarray(mesh, np.float64))
-        return blend_parts(self.model, parse_weights(expression, self.model.expressions))
+        w = parse_weights(expression, self.model.expressions)
+        last = getattr(self, "_blended_head", None)
+        return blend_parts(self.model, w, head=last[1] if last is not None and last[0] == tuple(w.items()) else None)
 
     def render(self, expression=None, *, mesh=None, camera=None, env="sky", spp: int = 4, size: int | None = None,
                stats: RenderStats | None = None, seed: int = 0, parts: dict | None = None,

@@ -73,11 +73,13 @@ def blend_geometry(vertices, head_pose, weights: dict[int, float]) -> tuple[np.n
     return _apply(Hb, local), Hb
 
 
-def blend_parts(model, weights: dict[str, float]) -> dict:
+def blend_parts(model, weights: dict[str, float], head: np.ndarray | None = None) -> dict:
     """Eye and teeth transforms {part: 4x4 rest→world} of a blend of captured expressions ``weights``
     {name: weight}: each expression's part transform taken into its head frame, blended there
     (:func:`mifacerf.rendering.parts.blend_transforms`), and carried out by the blended head pose, so the
-    eyes and teeth move with the blended skin (:func:`blend_geometry`)."""
+    eyes and teeth move with the blended skin (:func:`blend_geometry`). ``head``: that blended head pose
+    when the caller has it (:func:`blend_geometry`'s second result for the same weights), so a frame
+    blends the motions once."""
     from .parts import PARTS, blend_transforms, part_transforms, target_parts_from_weights
 
     if len(weights) == 1:                          # a captured expression: its registered parts as they are
@@ -86,7 +88,7 @@ def blend_parts(model, weights: dict[str, float]) -> dict:
     w = np.array(list(weights.values()), np.float64)
     w = w / w.sum()
     H = np.asarray(model.head_pose, np.float64)[idx]
-    Hb = blend_motions(H, w)
+    Hb = blend_motions(H, w) if head is None else np.asarray(head, np.float64)
     per = [part_transforms(model.template, model.eye_centres[s], model.teeth[s], model.head_pose[s]) for s in idx]
     out = {}
     for p in PARTS:
