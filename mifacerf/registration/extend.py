@@ -22,7 +22,8 @@ from ..formats.capture import Capture
 from ..formats.registration import RegisteredExpression, Registration, RegistrationWriter
 from ..geometry.footprint import centre_footprint
 from ..geometry.visibility import Visibility
-from .extensions import check_extensions, extensions_from_template, place_in_expression
+from .extensions import (check_extensions, extensions_from_template, fit_extensions_to_outlines,
+                         place_in_expression)
 from .hand import read_hand_inputs
 from .register import RegistrationInputError
 from .texcoords import texture_coordinates
@@ -113,20 +114,11 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
 
 def _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis) -> tuple[np.ndarray, dict]:
     """The template with its extensions fitted to the neutral's outlines, and the fit's report."""
-    from .extensions import refine_template_extensions, silhouette_matte
     from .proxies import proxies_for
 
     r = old.expression(neutral)
     V = np.concatenate([r.vertices, tpl.vertices[n_face:]])
     status = np.concatenate([r.status, np.zeros(tpl.n_vertices - n_face, r.status.dtype)])
-    place_in_expression(tpl.vertices, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose)
-    mattes = [silhouette_matte(proxies_for(cap, neutral, c.name).diffuse) for c in cams]
-    _, visible = texture_coordinates(V, cams, vis)
-    rest, rep = refine_template_extensions(tpl.vertices, tpl.triangles, exts, V, r.head_pose, cams, mattes, visible)
-    moved = np.linalg.norm(rest[n_face:] - tpl.vertices[n_face:], axis=1)
-    first, last = (rep["rounds"][0], rep["rounds"][-1]) if rep["rounds"] else ({}, {})
-    rep["moved_mm"] = {"mean": float(1000 * moved.mean()), "max": float(1000 * moved.max())}
-    rep["summary"] = (f"{first.get('measured', 0)} vertices on an outline, offset to the subject's "
-                      f"{first.get('mean_abs_offset_mm', 0):.2f} -> {last.get('mean_abs_offset_mm', 0):.2f} mm; "
-                      f"moved {rep['moved_mm']['mean']:.2f} mm on average (max {rep['moved_mm']['max']:.2f})")
-    return rest, rep
+    images = [proxies_for(cap, neutral, c.name).diffuse for c in cams]
+    return fit_extensions_to_outlines(tpl.vertices, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose,
+                                      cams, images, vis)

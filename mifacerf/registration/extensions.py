@@ -251,15 +251,44 @@ def silhouette_matte(image, floor: float = 1e-4) -> np.ndarray:
     return alpha
 
 
-def mesh_matte(scene, camera, spp: int = 8) -> np.ndarray:
+def mesh_matte(scene, camera, spp: int = 8, rays=None) -> np.ndarray:
     """(H, W) coverage of a :class:`~mifacerf.geometry.meshscene.MeshScene` in ``camera``: the share of
-    each pixel's ``spp`` stratified samples (box filter, as the capture's pixels) that hit it."""
-    from ..camera import stratified_pixel_samples
+    each pixel's ``spp`` stratified samples (box filter, as the capture's pixels) that hit it. ``rays``: a
+    :class:`MatteRays` of this camera (traced only in its band, elsewhere its ``outside`` values)."""
+    rays = rays or MatteRays(camera, spp)
+    hit = scene.trace(rays.origin, rays.directions).valid
+    out = rays.outside.copy()
+    out.reshape(-1)[rays.pixels] = hit.reshape(len(rays.pixels), rays.spp).mean(-1)
+    return out
 
-    uv = stratified_pixel_samples(camera.width, camera.height, spp, seed=0)
-    o, d = camera.pixel_rays(uv)
-    hit = scene.trace(o, d).valid
-    return hit.reshape(camera.height, camera.width, spp).mean(-1)
+
+class MatteRays:
+    """The sample rays of :func:`mesh_matte` in ``camera`` (``spp`` per pixel), made once for many traces:
+    every pixel, or only those within ``band_px`` of the outline of ``matte`` (H, W) (elsewhere the matte
+    rounded is taken as the mesh's coverage: far from the subject's outline, as
+    :func:`refine_to_silhouettes` needs, where its search cannot reach)."""
+
+    def __init__(self, camera, spp: int = 8, matte=None, band_px: float | None = None):
+        from ..camera import stratified_pixel_samples
+
+        H, W = camera.height, camera.width
+        self.spp = int(spp)
+        if matte is None or band_px is None:
+            self.pixels = np.arange(H * W)
+            self.outside = np.zeros((H, W))
+        else:
+            from scipy.ndimage import binary_dilation
+
+            m = np.asarray(matte, np.float64)
+            inside = m >= 0.5
+            edge = (m > 0) & (m < 1) | (inside ^ binary_dilation(inside))
+            r = int(np.ceil(band_px))
+            yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+            band = binary_dilation(edge, (xx ** 2 + yy ** 2) <= band_px ** 2)
+            self.pixels = np.flatnonzero(band)
+            self.outside = inside.astype(np.float64)
+        uv = stratified_pixel_samples(W, H, self.spp, seed=0).reshape(H * W, self.spp, 2)[self.pixels]
+        self.origin, self.directions = camera.pixel_rays(uv.reshape(-1, 2))
 
 
 def _crossing(matte, u, v, t, step):
@@ -298,7 +327,8 @@ def outline_offsets(V, N, ids, camera, matte, own, max_cos: float = 0.15, search
     t = np.arange(-search_px, search_px + 1e-9, step_px)
     u = uv0[:, None, 0] + t[None] * m[:, None, 0]
     v = uv0[:, None, 1] + t[None] * m[:, None, 1]
-    diff = _crossing(matte, u, v, t, step_px) - _crossing(own, u, v, t, step_px)
+    with np.errstate(invalid="ignore"):           # no crossing in either: inf - inf
+        diff = _crossing(matte, u, v, t, step_px) - _crossing(own, u, v, t, step_px)
     ok &= np.isfinite(diff)
     off = np.where(ok, diff / np.maximum(jac, 1e-30), 0.0)
     w = np.where(ok, 1.0 - cos / max_cos, 0.0)
@@ -333,6 +363,8 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     e = e[(free[e] >= 0).any(1)]
     report = {"vertices": int(len(ids)), "rounds": []}
     scene = MeshScene(V, F)
+    search = float(options.get("search_px", 4.0))
+    rays = [MatteRays(cam, matte=matte, band_px=2 * search + 2) for cam, matte in zip(cameras, mattes)]
     for _ in range(max(0, int(iterations))):
         N = vertex_normals(V, F)
         scene.set_vertices(V)
@@ -342,7 +374,7 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
             sel = ids if visible is None else ids[np.asarray(visible)[c, ids]]
             if not len(sel):
                 continue
-            off, w = outline_offsets(V, N, sel, cam, matte, mesh_matte(scene, cam), **options)
+            off, w = outline_offsets(V, N, sel, cam, matte, mesh_matte(scene, cam, rays=rays[c]), **options)
             np.add.at(num, free[sel], w * off)
             np.add.at(den, free[sel], w)
         seen = den > 0
@@ -365,6 +397,34 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
         report["rounds"].append({"measured": int(seen.sum()), "mean_abs_offset_mm": float(1000 * np.abs(d[seen]).mean()),
                                  "mean_abs_step_mm": float(1000 * np.abs(s).mean())})
     return V, report
+
+
+def fit_extensions_to_outlines(template, faces, fiducials, extensions, V, status, head, cameras, images, vis,
+                               **options) -> tuple[np.ndarray, dict]:
+    """The user's template (T, 3) with its extension vertices fitted to a registered expression's outlines
+    (the neutral's, in practice): the extensions placed in a copy of ``V`` / ``status`` (T, 3) / (T,) from its
+    registered fiducials and head pose ``head`` (:func:`place_in_expression`), a matte per camera from
+    ``images`` (one evenly lit image per camera against the stage's dark background: the diffuse proxies,
+    :func:`silhouette_matte`), the vertices' visibility from ``vis`` (:class:`~mifacerf.geometry.visibility.
+    Visibility`), then :func:`refine_template_extensions` (``options`` go to :func:`refine_to_silhouettes`).
+    Returns (template copy, report with ``moved_mm`` {mean, max} and a one-line ``summary``)."""
+    from .texcoords import texture_coordinates
+
+    X = np.asarray(template, np.float64)
+    V = np.asarray(V, np.float64).copy()
+    status = np.asarray(status).copy()
+    place_in_expression(X, faces, fiducials, extensions, V, status, head)
+    mattes = [silhouette_matte(im) for im in images]
+    _, visible = texture_coordinates(V, cameras, vis)
+    rest, rep = refine_template_extensions(X, faces, extensions, V, head, cameras, mattes, visible, **options)
+    ids = np.unique(np.concatenate([np.asarray(e.vertices, np.int64) for e in extensions]))
+    moved = np.linalg.norm(rest[ids] - X[ids], axis=1)
+    first, last = (rep["rounds"][0], rep["rounds"][-1]) if rep["rounds"] else ({}, {})
+    rep["moved_mm"] = {"mean": float(1000 * moved.mean()), "max": float(1000 * moved.max())}
+    rep["summary"] = (f"{first.get('measured', 0)} vertices on an outline, offset to the subject's "
+                      f"{first.get('mean_abs_offset_mm', 0):.2f} -> {last.get('mean_abs_offset_mm', 0):.2f} mm; "
+                      f"moved {rep['moved_mm']['mean']:.2f} mm on average (max {rep['moved_mm']['max']:.2f})")
+    return rest, rep
 
 
 def refine_template_extensions(template, faces, extensions, V, head, cameras, mattes, visible=None,

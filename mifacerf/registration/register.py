@@ -109,6 +109,9 @@ class Options:
     single_view: bool = True          #: then fiducials one view alone shows: position from it, depth from the surface
     single_view_strength: float = 0.25  #: ... its dot peak at least this strong (as for 2-D dot removal)
     single_view_search_px: float = 3.0  #: ... this near the point's projection (at most the consensus' spacing cap)
+    fit_extension_outlines: bool = True  #: a template with extensions: move their vertices (on the neutral) until
+    #:   their outline in every camera lies on the subject's (.extensions.fit_extensions_to_outlines); the
+    #:   registration's template.json carries the fitted positions. False: the user's positions as placed
 
     def __post_init__(self):
         from ..methods import lookup
@@ -150,6 +153,8 @@ class Registrar:
         self.is_extension = np.zeros(self.tpl.n_vertices, bool)
         for ext in self.extensions:
             self.is_extension[ext.vertices] = True
+        if self.extensions and self.opt.fit_extension_outlines and not fresh:
+            self.tpl = self._fitted_template(Path(out)) or self.tpl   # a resumed registration keeps its fit
         self.cams = list(capture.rig.cameras)
         self.names = [c.name for c in self.cams]
         self.camd = {c.name: c for c in self.cams}
@@ -449,6 +454,65 @@ class Registrar:
         e.report["extensions"] = rep
         e.flags.extend(rep["fallbacks"])
 
+    def fit_extension_outlines(self, V: np.ndarray, status: np.ndarray, T_head: np.ndarray, e: Expr) -> None:
+        """On the neutral (``V``, ``status``: its registered vertices; ``T_head`` its head pose): the template's
+        extension vertices fitted to the subject's outlines in the neutral's diffuse proxies
+        (:func:`.extensions.fit_extensions_to_outlines`, ``Options.fit_extension_outlines``); the template
+        (``self.tpl``, the folder's ``template.json``) takes the fitted positions, which every expression then
+        places. Reported under ``extension_outlines`` (the neutral's report) and in ``registration.json``."""
+        if not self.extensions or not self.opt.fit_extension_outlines:
+            return
+        from .extensions import fit_extensions_to_outlines
+
+        t0 = time.time()
+        images = [e.diffuse[n] for n in self.names]
+        rest, rep = fit_extensions_to_outlines(self.tpl.vertices, self.tpl.triangles, self.dots, self.extensions,
+                                               V, status, T_head, self.cams, images, self.vis)
+        raw = dict(self.tpl.raw)
+        raw["vertices"] = [dict(v, position=np.round(rest[i], 7).tolist()) if self.is_extension[i] else v
+                           for i, v in enumerate(self.tpl.raw["vertices"])]
+        self.tpl = Template.from_dict(raw, str(self.writer.root / "template.json"))
+        rep = {k: rep[k] for k in ("summary", "moved_mm", "rounds", "vertices")}
+        rep["time_s"] = round(time.time() - t0, 2)
+        self._write_template(raw, rep)
+        e.report["extension_outlines"] = rep
+        self.log(f"extensions fitted to the neutral's outlines: {rep['summary']} ({rep['time_s']} s)")
+
+    def _write_template(self, raw: dict, fit: dict) -> None:
+        """The folder's template.json replaced by ``raw`` (atomic; its checksum in registration.json, written
+        right after with the fit's report under ``extension_fit``)."""
+        from ..formats.files import file_entry, write_json_atomic
+
+        tpath = self.writer.root / "template.json"
+        write_json_atomic(tpath, raw)
+        self.writer.meta["files"]["template.json"] = file_entry(tpath)
+        self.writer.set_meta("extension_fit", {"summary": fit["summary"], "moved_mm": fit["moved_mm"]})
+
+    def _fitted_template(self, out: Path) -> Template | None:
+        """The template of a registration in ``out`` whose extensions were fitted to the outlines: the user's
+        template with only the extension vertices' positions changed (None when there is none, or the user's
+        template changed since)."""
+        import json
+
+        try:
+            meta = json.loads((out / "registration.json").read_text())
+            d = json.loads((out / "template.json").read_text())
+        except (OSError, ValueError):
+            return None
+        mine = self.tpl.raw
+        if "extension_fit" not in meta or {k: v for k, v in d.items() if k != "vertices"} != \
+                {k: v for k, v in json.loads(json.dumps(mine)).items() if k != "vertices"}:
+            return None
+        vs, ws = d.get("vertices", []), json.loads(json.dumps(mine["vertices"]))
+        if len(vs) != len(ws) or any({k: x for k, x in a.items() if k != "position" or not ext} !=
+                                     {k: x for k, x in b.items() if k != "position" or not ext}
+                                     for a, b, ext in zip(vs, ws, self.is_extension)):
+            return None
+        try:
+            return Template.from_dict(d, str(out / "template.json"))
+        except ValueError:
+            return None
+
     def head_points(self, name: str, V: np.ndarray, status: np.ndarray, known: dict) -> dict:
         """Ear / nose-bridge points of an expression {name: (3,)}: the user's marks (rotoscope
         points, or the coarse points when those are the head points), else registered vertices."""
@@ -621,6 +685,8 @@ class Registrar:
             V[vid], status[vid] = p, 1
         V = self.relax_contours(name, V, status, e)
         T_head = self.head_pose(name, V, status, known, e)
+        if name == self.neutral:
+            self.fit_extension_outlines(V, status, T_head, e)
         self.place_extension_vertices(name, V, status, T_head, e)
         if name == self.neutral:
             hp = self.head_points(name, V, status, known)

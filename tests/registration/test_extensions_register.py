@@ -177,3 +177,40 @@ def test_extensions_added_to_a_finished_registration_keep_its_face(toy_registere
     (cap2 / "hand" / "template.json").write_text(json.dumps(d))
     with pytest.raises(RegistrationInputError, match="are not those of the registered template"):
         extend_registration(cap2, reg_dir, tmp_path / "reg-ext2")
+
+
+@pytest.mark.slow
+def test_registration_fits_the_extensions_to_the_outlines_on_the_tiny_preset(tmp_path):
+    """register_capture on a template with extensions fits them to the neutral's outlines (item 1 of the
+    issue's third pass): the outline offset shrinks, template.json carries the fitted positions (the face's
+    unchanged), every expression places them, a resumed registration keeps the fit; the option turns it off."""
+    from helpers.capture import tiny_capture_without_truth
+
+    from mifacerf.formats.registration import Registration
+    from mifacerf.registration.register import Options, register_capture
+
+    cap, _ = tiny_capture_without_truth(tmp_path, ["neutral", "smile"])
+    hand = json.loads((cap / "hand" / "template.json").read_text())
+    X = np.array([v["position"] for v in hand["vertices"]])
+    ext = np.unique(np.concatenate([e["vertices"] for e in hand["extensions"].values()]))
+    off = Registration(register_capture(cap, tmp_path / "off", progress=False,
+                                        options=Options(fit_extension_outlines=False)))
+    assert off.template == hand and "extension_fit" not in off.meta
+    assert "extension_outlines" not in off.report("neutral")
+    out = register_capture(cap, tmp_path / "on", progress=False)
+    on = Registration(out)
+    fit = on.report("neutral")["extension_outlines"]
+    first, last = fit["rounds"][0], fit["rounds"][-1]
+    assert first["measured"] > 20 and last["mean_abs_offset_mm"] < 0.5 * first["mean_abs_offset_mm"]
+    assert fit["time_s"] < 10 and on.meta["extension_fit"]["summary"] == fit["summary"]
+    Y = np.array([v["position"] for v in on.template["vertices"]])
+    face = np.setdiff1d(np.arange(len(X)), ext)
+    np.testing.assert_array_equal(Y[face], X[face])
+    assert np.linalg.norm(Y[ext] - X[ext], axis=1).mean() > 1e-4
+    assert {k: v for k, v in on.template.items() if k != "vertices"} == {k: v for k, v in hand.items() if k != "vertices"}
+    for name in ("neutral", "smile"):     # the expressions placed from the fitted template: not as without it
+        assert np.abs(on.expression(name).vertices[ext] - off.expression(name).vertices[ext]).max() > 1e-4
+        np.testing.assert_array_equal(on.expression(name).vertices[face], off.expression(name).vertices[face])
+    before = (out / "template.json").read_bytes()
+    register_capture(cap, out, progress=False)          # resumed (nothing to do): the fit is kept
+    assert (out / "template.json").read_bytes() == before and Registration(out).verify() == []
