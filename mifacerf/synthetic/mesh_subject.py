@@ -461,8 +461,9 @@ class MeshSubject:
 
             cameras = preset("draft").rig().cameras
         occ = self._occluder(self.pose_geometry(np.zeros(len(self.shape_names))))
+        poses = [(g["skin"], self._occluder(g)) for g in map(self.pose_geometry, self._extreme_params())]
         tpl, info = build_mesh_template(self.skin_rest, self.skin_faces, occ, cameras, n_dots, dot_seed,
-                                        self.eye_centres)
+                                        self.eye_centres, poses=poses)
         tpl.eyes = {n: {"centre": self.eye_centres[n], "radius": self.eye_radius} for n in self.eye_centres}
         tpl.teeth = self._teeth_strips()
         tpl = self._extensions(tpl)
@@ -472,9 +473,12 @@ class MeshSubject:
         self.dot_names = [""] * len(self.dot_tri)
         self.skin_face_region = info["covered"] & info["visible"]
         report.append(f"template: {n_dots} dots over {info['visible_area'] * 1e4:.0f} cm² of skin two cameras "
-                      f"see (spacing {info['spacing'] * 1000:.1f} mm), {len(tpl.kinds)} vertices, "
+                      f"see (spacing {info['spacing'] * 1000:.1f} mm; dots on the {info['region_area'] * 1e4:.0f} cm² "
+                      f"they see in the neutral and in each of {info['n_poses']} shapes at full weight), "
+                      f"{len(tpl.kinds)} vertices, "
                       f"{len(tpl.triangles)} triangles, margins: {', '.join(info['margins']) or 'none'}, marks: "
-                      f"{', '.join(info['marks']) or 'none'}; covers {100 * info['coverage']:.1f} % of the visible skin")
+                      f"{', '.join(info['marks']) or 'none'}; covers {100 * info['coverage']:.1f} % of the visible skin "
+                      f"({100 * info['region_coverage']:.1f} % of the skin seen in every shape)")
 
         # textures: the user's albedo (or plain skin) with the dots painted in
         self._albedo_clean = self._base_albedo(spec, res)
@@ -485,6 +489,14 @@ class MeshSubject:
         for line in report[1:]:
             if "left out" in line or "xatlas" in line or "dropped" in line:
                 warnings.warn(line, MeshSubjectWarning, stacklevel=3)
+
+    def _extreme_params(self) -> list:
+        """The parameters of every shape at full weight and of the folder's named presets: the poses in
+        which the dots must be seen (the captured expressions are these or blends of them)."""
+        out = [self.params(**{k: 1.0}) for k in self.shape_names]
+        for e in self._manifest_presets or []:
+            out.append(self.params(**e["weights"]))
+        return out
 
     def _teeth_strips(self, n_teeth: int = 10) -> dict:
         """The paper's teeth model for each teeth part: a strip along its front ``n_teeth`` tooth widths,

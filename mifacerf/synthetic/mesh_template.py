@@ -42,11 +42,12 @@ def face_normals(V, F):
 
 
 def view_counts(points, normals, occluder, cameras, min_cos: float = MIN_COS) -> np.ndarray:
-    """(N,) how many cameras see each surface point (ray-traced against ``occluder`` = (V, F);
-    ``normals`` (N, 3) outward; a view closer than ``acos(min_cos)`` to grazing does not count)."""
+    """(N,) how many cameras see each surface point (ray-traced against ``occluder`` = (V, F), or a
+    ``MeshScene`` of it; ``normals`` (N, 3) outward; a view closer than ``acos(min_cos)`` to grazing
+    does not count)."""
     from ..geometry.meshscene import MeshScene
 
-    scene = MeshScene(*occluder)
+    scene = occluder if isinstance(occluder, MeshScene) else MeshScene(*occluder)
     n = np.zeros(len(points), np.int64)
     for cam in cameras:
         v = scene.visible_from(points, cam, tol=5e-4)
@@ -58,8 +59,10 @@ def view_counts(points, normals, occluder, cameras, min_cos: float = MIN_COS) ->
 
 def visible_skin(V, F, occluder, cameras, min_views: int = 2):
     """(F,) bool skin triangles whose centroid and corners ``min_views`` cameras see; (Vn,) vertex view counts."""
+    from ..geometry.meshscene import MeshScene
     from .subject import vertex_normals
 
+    occluder = occluder if isinstance(occluder, MeshScene) else MeshScene(*occluder)
     N = vertex_normals(V, F)
     vcount = view_counts(V, N, occluder, cameras)
     C = V[F].mean(axis=1)
@@ -298,6 +301,10 @@ def template_coverage(V, F, visible, tpl_P, tpl_T, reach: float) -> tuple:
     return (float(area[visible & covered].sum() / tot) if tot > 0 else 0.0), covered
 
 
+def _areas(V, F):
+    return 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+
+
 def _vertex_binding(F, v):
     t = int(np.nonzero((F == v).any(axis=1))[0][0])
     b = (F[t] == v).astype(float)
@@ -410,17 +417,70 @@ def head_marks(V, vcount, eye_centres: dict, nose_tip):
     return out
 
 
+def _seen_in_every_pose(V, F, scenes, cameras, min_views):
+    """``keep(points, triangles) -> (N,) bool`` for :func:`sample_dots`: the points (on the neutral skin
+    ``V``) that ``min_views`` cameras see in the neutral and, carried by their triangle's barycentric
+    coordinates, in every further pose of ``scenes`` [(V_k, MeshScene of its occluder)]."""
+    fn0 = face_normals(V, F)
+
+    def keep(P, t):
+        ok = view_counts(P, fn0[t], scenes[0][1], cameras) >= min_views
+        if len(scenes) > 1 and ok.any():
+            import trimesh
+
+            b = trimesh.triangles.points_to_barycentric(V[F[t]], P)
+            for Vk, sc in scenes[1:]:
+                Pk = np.einsum("nk,nkj->nj", b, Vk[F[t]])
+                ok &= view_counts(Pk, face_normals(Vk, F)[t], sc, cameras) >= min_views
+        return ok
+    return keep
+
+
+def min_view_counts(F, tri, bary, scenes, cameras) -> np.ndarray:
+    """(n,) the fewest cameras that see each point (triangle ``tri``, ``bary``) over the poses ``scenes``."""
+    out = None
+    for Vk, sc in scenes:
+        P = np.einsum("nk,nkj->nj", bary, Vk[F[tri]])
+        c = view_counts(P, face_normals(Vk, F)[tri], sc, cameras)
+        out = c if out is None else np.minimum(out, c)
+    return out
+
+
+def coarse_choice(P, motions, candidates, k: int = 18, motion_weight: float = 2.0) -> np.ndarray:
+    """``k`` coarse points among ``candidates`` (ids into ``P``): farthest-point sampling in the space of
+    the neutral position and ``motion_weight`` times the point's displacement in each expression
+    (``motions`` (K, n, 3)), so the coarse mesh, which predicts every expression's dots, has points where
+    the skin moves (lips, chin, jaw) and not only at the extremes of the head."""
+    X = P[candidates]
+    if len(motions):
+        X = np.concatenate([X] + [motion_weight * m[candidates] for m in motions], axis=1)
+    centre = np.argmin(np.linalg.norm(P[candidates] - P[candidates].mean(axis=0), axis=1))
+    return candidates[farthest_points(X, k, centre)]
+
+
 def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye_centres=None,
-                        min_views: int = 2):
+                        min_views: int = 2, poses=None):
     """The template of a skin surface ``V`` (V, 3), ``F`` (F, 3) seen by ``cameras``.
 
+    ``poses``: the skin's vertices ``V_k`` and occluder ``(V, F)`` of every further expression the
+    capture photographs [(V_k, occluder_k), ...]: dots only where ``min_views`` cameras see them in
+    the neutral *and in each of these* (an open jaw hides its underside from the upper cameras), and
+    the coarse points spread over the skin's motion in them as well as over its shape.
+
     Returns ``(template, info)``; ``info``: ``visible`` (F,) bool, ``covered`` (F,) bool,
-    ``coverage`` (share of the visible skin's area), ``dot_tri``, ``dot_bary``, ``view_counts`` of
-    the dots, ``margins`` found, ``marks`` found, ``spacing`` (m)."""
+    ``coverage`` (share of the visible skin's area), ``dot_tri``, ``dot_bary``, ``dot_views`` (cameras
+    seeing each dot in the neutral), ``dot_views_min`` (... the fewest over the poses), ``margins`` found,
+    ``marks`` found, ``spacing`` (m), ``region`` (F,) bool (the skin ``min_views`` cameras see in every pose),
+    ``region_area`` (m²), ``region_coverage`` (the share of it the template covers)."""
+    from ..geometry.meshscene import MeshScene
     from .mesh_subject import MeshSubjectError
 
     eye_centres = eye_centres or {}
-    visible, vcount = visible_skin(V, F, occluder, cameras, min_views)
+    scenes = [(V, MeshScene(*occluder))] + [(np.asarray(Vk, np.float64), MeshScene(*occ)) for Vk, occ in poses or []]
+    visible, vcount = visible_skin(V, F, scenes[0][1], cameras, min_views)
+    region = visible.copy()
+    for Vk, sc in scenes[1:]:
+        region &= visible_skin(Vk, F, sc, cameras, min_views)[0]
     fn = face_normals(V, F)
     area = 0.5 * np.linalg.norm(np.cross(V[F[visible, 1]] - V[F[visible, 0]], V[F[visible, 2]] - V[F[visible, 0]]),
                                 axis=1).sum()
@@ -429,13 +489,14 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     loops = {k: r for k, r in ((k, visible_ring(V, F, lp, vcount >= min_views)) for k, lp in loops.items())
              if len(r) >= 6}
     margin_pts = V[np.concatenate([np.asarray(lp) for lp in loops.values()])] if loops else np.zeros((0, 3))
-    dot_tri, dot_bary = sample_dots(V, F, visible, n_dots, seed, avoid=margin_pts, avoid_dist=0.4 * spacing,
-                                    keep=lambda P, t: view_counts(P, fn[t], occluder, cameras) >= min_views)
+    dot_tri, dot_bary = sample_dots(V, F, region, n_dots, seed, avoid=margin_pts, avoid_dist=0.4 * spacing,
+                                    keep=_seen_in_every_pose(V, F, scenes, cameras, min_views))
     dots = np.einsum("nk,nkj->nj", dot_bary, V[F[dot_tri]])
-    dot_views = view_counts(dots, fn[dot_tri], occluder, cameras)
-    if (dot_views < min_views).any():
-        raise MeshSubjectError(f"{int((dot_views < min_views).sum())} of {n_dots} dots are seen by fewer than "
-                               f"{min_views} cameras")
+    dot_views = view_counts(dots, fn[dot_tri], scenes[0][1], cameras)
+    dot_views_min = min_view_counts(F, dot_tri, dot_bary, scenes, cameras)
+    if (dot_views_min < min_views).any():
+        raise MeshSubjectError(f"{int((dot_views_min < min_views).sum())} of {n_dots} dots are seen by fewer than "
+                               f"{min_views} cameras" + (" in some expression" if len(scenes) > 1 else ""))
 
     kinds = ["dot"] * n_dots
     names = [""] * n_dots
@@ -474,12 +535,14 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     T = voronoi_dual(V, F, labels, P, fn)
     for loop in holes.values():            # cells meet beyond an opening's corners: keep the opening open
         T = T[~np.isin(T, loop).all(axis=1)]
-    # coarse points: farthest-point sampling over well-seen dots, their own dual
-    good = np.nonzero(dot_views >= 3)[0]
+    # coarse points: farthest-point sampling over well-seen dots (in shape and motion), their own dual
+    good = np.nonzero(dot_views_min >= 3)[0]
+    if len(good) < 18:
+        good = np.nonzero(dot_views >= 3)[0]
     if len(good) < 18:
         good = np.arange(n_dots)
-    centre = np.argmin(np.linalg.norm(dots[good] - dots[good].mean(axis=0), axis=1))
-    coarse = good[farthest_points(dots[good], 18, centre)]
+    motions = [np.einsum("nk,nkj->nj", dot_bary, Vk[F[dot_tri]]) - dots for Vk, _ in scenes[1:]]
+    coarse = coarse_choice(dots, motions, good)
     clab = voronoi_cells(V, F, tri[coarse], bary[coarse], np.inf)
     clab[labels < 0] = -1
     Tc = voronoi_dual(V, F, clab, P[coarse], fn)
@@ -487,12 +550,15 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     for i, j in enumerate(coarse):
         names[j] = cnames[i]
     coverage, covered = template_coverage(V, F, visible, P, T, reach=0.5 * spacing)
+    tot = _areas(V, F)
+    region_coverage = float(tot[region & covered].sum() / max(tot[region].sum(), 1e-30))
     regions = bbox_regions(P, V[np.unique(F[visible])])
     tpl = Template(kinds, names, P.copy(), T, coarse, cnames, Tc, regions, holes, {}, {},
                    ["skin"] * len(kinds), tri, bary, "mesh", extra={"skin_faces": F})
     info = {"visible": visible, "covered": covered, "coverage": coverage, "dot_tri": dot_tri,
-            "dot_bary": dot_bary, "dot_views": dot_views, "margins": sorted(loops), "marks": sorted(marks),
-            "spacing": spacing, "visible_area": float(area)}
+            "dot_bary": dot_bary, "dot_views": dot_views, "dot_views_min": dot_views_min, "margins": sorted(loops),
+            "marks": sorted(marks), "spacing": spacing, "visible_area": float(area), "n_poses": len(scenes) - 1,
+            "region": region, "region_area": float(tot[region].sum()), "region_coverage": region_coverage}
     return tpl, info
 
 

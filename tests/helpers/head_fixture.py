@@ -116,18 +116,24 @@ def write_obj(path, V, groups, uv: bool = True):
     Path(path).write_text("\n".join(lines + vt_lines + body) + "\n")
 
 
-def expressions(V, groups):
-    """{name: V'} ARKit-named shapes: jawOpen (chin, lower lip and lower teeth down), mouthSmile_L,
+def expressions(V, groups, jaw_cm: float = 0.9, jaw_deg: float = 0.0):
+    """{name: V'} ARKit-named shapes: jawOpen (chin, lower lip and lower teeth ``jaw_cm`` down, and the chin
+    turned ``jaw_deg`` down and back about a hinge behind the mouth), mouthSmile_L,
     eyeLookUp_L (both eyeballs turn up 15 degrees)."""
     out = {}
     face_v = np.unique([i for k in ("Face", "Head and Neck") for f in groups[k] for i in f])
     Vf = V[face_v]
     jaw = V.copy()
     w = np.clip((MOUTH_Y - 0.2 - Vf[:, 1]) / 3.0, 0, 1) * (Vf[:, 2] > -2)
-    jaw[face_v, 1] -= 0.9 * w
+    jaw[face_v, 1] -= jaw_cm * w
+    if jaw_deg:
+        a = np.radians(jaw_deg) * w * np.clip((Vf[:, 1] + 10.2) / 3.0, 0, 1)     # the neck's end stays
+        y, z = Vf[:, 1] - MOUTH_Y, Vf[:, 2] + 2.0
+        jaw[face_v, 1] = MOUTH_Y + y * np.cos(a) - z * np.sin(a) - jaw_cm * w
+        jaw[face_v, 2] = -2.0 + y * np.sin(a) + z * np.cos(a)
     teeth = np.unique([i for f in groups["Teeth"] for i in f])
     low = teeth[V[teeth, 1] < MOUTH_Y]
-    jaw[low, 1] -= 0.9
+    jaw[low, 1] -= jaw_cm
     out["jawOpen"] = jaw
     sm = V.copy()
     g = np.exp(-((Vf[:, 1] - MOUTH_Y) / 1.5) ** 2) * (Vf[:, 0] > 0) * (Vf[:, 2] > 0)
@@ -154,15 +160,16 @@ def albedo_tiles(size: int = 64):
     return {1001: face, 1002: head}
 
 
-def write_head(folder, sub: int = 4, albedo: bool = True, manifest: dict | None = None) -> Path:
-    """Write the whole subject folder; returns it."""
+def write_head(folder, sub: int = 4, albedo: bool = True, manifest: dict | None = None, jaw_cm: float = 0.9,
+               jaw_deg: float = 0.0) -> Path:
+    """Write the whole subject folder (``jaw_cm``, ``jaw_deg``: how jawOpen moves the chin); returns it."""
     import imageio.v3 as iio
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     V, groups = head_parts(sub)
     write_obj(folder / "neutral.obj", V, groups)
-    for name, Vx in expressions(V, groups).items():
+    for name, Vx in expressions(V, groups, jaw_cm, jaw_deg).items():
         write_obj(folder / f"{name}.obj", Vx, groups)
     if albedo:
         for t, img in albedo_tiles().items():

@@ -87,7 +87,10 @@ def test_production_style_head(subject, head):
     t = s.template
     assert set(t.holes) == {"mouth", "eye_left", "eye_right"}
     assert {"ear_L", "ear_R", "nose_bridge"} <= set(t.names)
-    assert s.template_info["coverage"] >= 0.98 and (s.template_info["dot_views"] >= 2).all()
+    # (coverage of the skin two cameras see in the neutral: 97.9 %; of the skin they see in every shape,
+    # where the dots may go: 98.1 %)
+    assert s.template_info["region_coverage"] >= 0.98 and s.template_info["coverage"] >= 0.975
+    assert (s.template_info["dot_views"] >= 2).all() and (s.template_info["dot_views_min"] >= 2).all()
     assert set(t.eyes) == {"eye_left", "eye_right"}
     assert set(t.teeth) == {"upper", "lower"} and len(t.teeth["lower"]["triangles"]) == 20   # the paper's strips
     assert "extensions: " in rep and t.kinds.count("extension") > 0 and "scalp" in t.extensions   # issue 16
@@ -188,3 +191,45 @@ def test_bad_inputs_answer_with_one_line(tmp_path, head, cameras):
     with pytest.raises(MeshSubjectError) as e:
         load(d)
     assert "not manifold" in _one_line(e)
+
+
+def _view_counts_in(s, pose, cameras):
+    """Cameras seeing each dot of ``s`` in ``pose``, ray-traced against the posed skin and parts."""
+    from mifacerf.synthetic.mesh_template import face_normals, view_counts
+
+    Vs, Fs, off = [pose.skin_vertices], [s.skin_faces.astype(np.int64)], len(pose.skin_vertices)
+    for part in pose.parts.values():
+        Vs.append(part.vertices)
+        Fs.append(np.asarray(part.faces, np.int64) + off)
+        off += len(part.vertices)
+    n = face_normals(pose.skin_vertices, s.skin_faces)[s.dot_tri]
+    return view_counts(pose.dots, n, (np.concatenate(Vs), np.concatenate(Fs)), cameras)
+
+
+def test_dots_are_seen_by_two_cameras_in_every_captured_expression(tmp_path, cameras):
+    """An opening jaw turns the chin's underside away from the cameras: dots are placed where two
+    cameras see them in the neutral and in every shape (issue 21: viseme_aa of the embedded head lost
+    dots seen by one camera when they were placed on the neutral alone)."""
+    from mifacerf.rig import preset
+    from mifacerf.synthetic.mesh_template import build_mesh_template
+    from mifacerf.synthetic.synth import choose_expressions
+
+    head = write_head(tmp_path / "jaw", jaw_deg=15.0)
+    with pytest.warns(UserWarning, match="left out"):
+        s = load_mesh_subject(head, cameras=cameras, texture_resolution=512, n_dots=80)
+    exprs = choose_expressions(s, preset("tiny"))
+    assert {"neutral", "jawOpen", "jawOpen_50"} <= {e.name for e in exprs}
+    for e in exprs:
+        views = _view_counts_in(s, s.pose(e.params, textures=False), cameras)
+        assert (views >= 2).all(), (e.name, np.nonzero(views < 2)[0])
+    info = s.template_info
+    assert info["n_poses"] == 3 and (info["dot_views_min"] >= 2).all()
+    assert info["region_coverage"] >= 0.97 and info["region_area"] < 0.97 * info["visible_area"]  # 97.6 %; 302 of 318 cm²
+    assert "of the skin seen in every shape" in "\n".join(s.report)
+    # the rule of the neutral alone would have put dots where the open jaw hides them
+    occ = s._occluder(s.pose_geometry(s.params()))
+    _, old = build_mesh_template(s.skin_rest, s.skin_faces, occ, cameras, 80, 0, s.eye_centres)
+    jaw = s.pose(s.params(jawOpen=1.0), textures=False)
+    s.dot_tri, s.dot_bary = old["dot_tri"], old["dot_bary"]
+    jaw.dots = np.einsum("nk,nkj->nj", s.dot_bary, jaw.skin_vertices[s.skin_faces[s.dot_tri]])
+    assert (_view_counts_in(s, jaw, cameras) < 2).any()
