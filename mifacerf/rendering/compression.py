@@ -215,6 +215,7 @@ def _load_pca(model, s: int, c: int, rank: int, lights):
 
 def _lit_pca(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
     comp, dev = data
+    lighting = np.asarray(lighting)
     if keep is not None:
         comp = {"coeff": comp["coeff"], "mean": comp["mean"][keep], "basis": comp["basis"][:, keep]}
     m_v = np.einsum("vlc,lc->vc", lighting, comp["mean"])

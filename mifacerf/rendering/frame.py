@@ -135,10 +135,13 @@ class LitFrame:
     dicts with keys ``s``, ``c``, ``weights`` (T,) and ``fallback`` (T,) (the two tiers'
     per-vertex weights; ``fallback`` defaults to ``weights``), ``image`` (H, W, 4) lit RGB + coverage,
     ``depth`` (H, W), ``camera`` (a :class:`~mifacerf.camera.Camera`); ``sources`` {s: (T, 3)}.
+    ``images`` and ``depths``: the chunks' lit images (outline texels marked as :func:`mark_outline` does)
+    and depth maps already on the device, flat Floats of H*W*4 and H*W per chunk in order (the renderer
+    builds them there); the chunks then give ``shape`` (H, W) instead of ``image`` and ``depth``.
     """
 
     def __init__(self, target: np.ndarray, triangles: np.ndarray, chunks: list[dict], sources: dict,
-                 depth_tolerance: float = 0.004, outline: bool = True):
+                 depth_tolerance: float = 0.004, outline: bool = True, images=None, depths=None):
         mi = ensure_variant()
         self.mi = mi
         self.n_chunks = len(chunks)
@@ -155,9 +158,10 @@ class LitFrame:
         img_parts, depth_parts, w_parts, f_parts, table = [], [], [], [], []
         img_off = 0
         for i, ch in enumerate(chunks):
-            h, w = ch["image"].shape[:2]
-            img_parts.append(mark_outline(ch["image"], ch["depth"], outline).reshape(-1))
-            depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
+            h, w = ch["shape"] if images is not None else ch["image"].shape[:2]
+            if images is None:
+                img_parts.append(mark_outline(ch["image"], ch["depth"], outline).reshape(-1))
+                depth_parts.append(np.asarray(ch["depth"], np.float32).reshape(-1))
             w_parts.append(np.asarray(ch["weights"], np.float32))
             f_parts.append(np.asarray(ch.get("fallback", ch["weights"]), np.float32))
             row = np.zeros(CAM_PARAMS + 3)
@@ -171,8 +175,8 @@ class LitFrame:
             raise ValueError("frame too large: the lit images exceed 2^30 pixels")
         self.stride = CAM_PARAMS + 3
         self.table = to_jit(mi.Float, np.concatenate(table) if table else np.zeros(self.stride))
-        self.images = to_jit(mi.Float, np.concatenate(img_parts) if img_parts else np.zeros(4))
-        self.depths = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
+        self.images = images if images is not None else to_jit(mi.Float, np.concatenate(img_parts) if img_parts else np.zeros(4))
+        self.depths = depths if depths is not None else to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
         self.weights = to_jit(mi.Float, np.concatenate(w_parts) if w_parts else np.zeros(1))
         self.fallback = to_jit(mi.Float, np.concatenate(f_parts) if f_parts else np.zeros(1))
 

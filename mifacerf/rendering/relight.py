@@ -48,6 +48,39 @@ def to_device_words(array: np.ndarray) -> HalfWords:
     return HalfWords(array)
 
 
+class DeviceLighting:
+    """Per-vertex light-stage weights (V, K, 3) with the device forms :func:`lit_texels` reads, each made on
+    first use and kept: a frame's chunks of one source (one per capture camera) share one lighting, which
+    was re-laid-out and uploaded for every chunk (1.8 MB each for 801 vertices x 192 lights). ``array``
+    the NumPy array (also ``np.asarray(self)``); ``flat`` (Float, V*K*3); ``quads`` (UInt64: the (V, K/4,
+    3, 4) layout of the four-lights-at-a-time kernel)."""
+
+    def __init__(self, lighting: np.ndarray):
+        self.array = np.asarray(lighting)
+        self._flat = self._quads = None
+
+    @property
+    def shape(self) -> tuple:
+        return self.array.shape
+
+    def __array__(self, dtype=None, copy=None):
+        return self.array if dtype is None else self.array.astype(dtype)
+
+    @property
+    def flat(self):
+        if self._flat is None:
+            self._flat = to_jit(ensure_variant().Float, self.array.reshape(-1))
+        return self._flat
+
+    @property
+    def quads(self):
+        if self._quads is None:
+            k = self.array.shape[1]
+            quads = np.ascontiguousarray(np.asarray(self.array, np.float32).reshape(-1, k // 4, 4, 3).transpose(0, 1, 3, 2))
+            self._quads = to_jit(ensure_variant().UInt64, quads.reshape(-1).view(np.uint64))
+        return self._quads
+
+
 def half_to_float(h):
     """Float of the IEEE half in the low 16 bits of UInt32 ``h``, exact for every finite half (normal:
     exponent rebiased by 112; subnormal: its 10-bit integer times 2^-24, so no flush-to-zero of a subnormal
@@ -70,7 +103,8 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     (:func:`to_device_words`, the fast form) or a flat Dr.Jit Float16 array (:func:`to_device_f16`);
     ``vertex_ids`` (N, 3) and ``coef`` (N, 3) the texels'
     triangle vertices and normalised weights ĉ; ``lighting`` (V, K, 3) per-vertex
-    light-stage weights of the lights ``light_ids`` (K,) (default: all L lights, K = L) —
+    light-stage weights of the lights ``light_ids`` (K,) (default: all L lights, K = L; an array, or a
+    :class:`DeviceLighting` shared by the calls that light with it) —
     the lights whose weight is negligible everywhere can be left out of the sum. Both forms give the
     same result bit for bit (the same products, summed in the same order).
     """
@@ -88,7 +122,7 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     base_f = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(stride))
     base_v = [to_jit(UInt32, np.asarray(vertex_ids[:, j], np.uint32) * np.uint32(k * 3)) for j in range(3)]
     cf = [to_jit(Float, coef[:, j]) for j in range(3)]
-    light = to_jit(Float, np.asarray(lighting).reshape(-1))
+    lighting = lighting if isinstance(lighting, DeviceLighting) else DeviceLighting(lighting)
     ids_dev = to_jit(UInt32, np.append(ids, 0).astype(np.uint32))  # padded: never a width-1 (literal) array
     count = dr.opaque(UInt32, k)
 
@@ -96,6 +130,7 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
         return i < count
 
     def lam(o, ch):
+        light = lighting.flat
         return (cf[0] * dr.gather(Float, light, base_v[0] + o + ch)
                 + cf[1] * dr.gather(Float, light, base_v[1] + o + ch)
                 + cf[2] * dr.gather(Float, light, base_v[2] + o + ch))
@@ -107,8 +142,7 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
         words = rf_device.words
         base_w = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(stride // 4))
         base_q = [to_jit(UInt32, np.asarray(vertex_ids[:, j], np.uint32) * np.uint32(k * 3 // 2)) for j in range(3)]
-        quads = np.ascontiguousarray(np.asarray(lighting, np.float32).reshape(-1, k // 4, 4, 3).transpose(0, 1, 3, 2))
-        light_q = to_jit(UInt64, quads.reshape(-1).view(np.uint64))
+        light_q = lighting.quads
         count = dr.opaque(UInt32, k // 4)
 
         def floats(w):
@@ -165,4 +199,5 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     def result() -> np.ndarray:
         return np.stack([np.asarray(r), np.asarray(g), np.asarray(b)], axis=1)
 
+    result.device = (r, g, b)   # the lit colours left on the device (the renderer places them there)
     return result if later else result()

@@ -29,10 +29,11 @@ from ..camera import Camera
 from ..environment import DEFAULT_LIGHT_BASIS_METHOD, LIGHT_BASIS_METHODS, Environment
 from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
-from ..variant import ensure_plugins
+from ..variant import ensure_plugins, ensure_variant
 from .chunks import FramePlan, plan_frame
 from .frame import LitFrame, resolve_pixels
 from .lighting import RotatedLightBasis
+from .relight import DeviceLighting
 from ..geometry.meshscene import MeshScene
 from ..geometry.rigid import apply
 from ..blas import single_threaded_blas
@@ -157,14 +158,22 @@ class Renderer:
         return self._device[key]
 
     def _texel_map(self, s: int, c: int, f):
-        """Field (s, c)'s texel vertices (N, 3) and depth map (H, W), made once (read-only; a frame reads them,
-        never writes)."""
+        """Field (s, c)'s texel vertices (N, 3) and what its lit image needs on the device, made once
+        (read-only; a frame reads them, never writes): the texels' pixel indices (N,) uint32, their
+        coverage (N,) float32 (1; −1 on the field's outline, :func:`.frame.outline_texels`, as
+        :func:`.frame.mark_outline` marks it) and the depth map (Float, H*W, +inf where no texel)."""
         key = (s, c)
         if key not in self._texel_maps:
+            from .frame import outline_texels
+
+            mi = ensure_variant()
             fv = self.model.triangles[f.tri]
             depth = f.depth_map()
-            fv.flags.writeable = depth.flags.writeable = False
-            self._texel_maps[key] = (fv, depth)
+            lin = (f.pixels[:, 0] * depth.shape[1] + f.pixels[:, 1]).astype(np.uint32)
+            coverage = np.where(outline_texels(depth).reshape(-1)[lin], -1.0, 1.0).astype(np.float32)
+            for a in (fv, lin, coverage):
+                a.flags.writeable = False
+            self._texel_maps[key] = (fv, lin, coverage, to_jit(mi.Float, depth.reshape(-1)))
         return self._texel_maps[key]
 
     # ----------------------------------------------------------------- frame
@@ -194,8 +203,10 @@ class Renderer:
                 keep = kept
                 stats.lights_skipped = int(len(peak) - len(kept))
                 lighting = {s: L[:, kept] for s, L in lighting.items()}
+        # each source's lighting laid out and uploaded once for all its chunks (one per capture camera)
+        lighting = {s: DeviceLighting(L) for s, L in lighting.items()}
         stats.add_time("lighting", time.perf_counter() - t0)
-        chunks = []
+        chunks, lit_texels = [], []
         for chunk in plan.chunks:
             s, c = chunk.s, chunk.c
             t0 = time.perf_counter()
@@ -205,29 +216,26 @@ class Renderer:
             data = self._device_field(s, c)
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            fv, depth = self._texel_map(s, c, f)
+            fv, lin, coverage, depth = self._texel_map(s, c, f)
             wt = f.bary * (chunk.weights + chunk.fallback)[fv]  # lit wherever either tier may read it
             wsum_t = wt.sum(1)
             active = np.flatnonzero(wsum_t > 0)
             coef = wt[active] / wsum_t[active, None]
-            # launched now, read back below: the chunks' kernels run while the next ones are prepared
+            # launched now, placed below: the chunks' kernels run while the next ones are prepared
             lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
             cam = model.cameras[c]
-            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback, "image": lit,
-                           "pixels": f.pixels[active], "depth": depth, "camera": cam})
+            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback,
+                           "shape": (cam.height, cam.width), "camera": cam})
+            lit_texels.append((lit, lin[active], coverage[active], depth))
             stats.chunks += 1
             stats.texels += len(active)
             stats.add_time("relight", time.perf_counter() - t0)
         t0 = time.perf_counter()
-        for ch in chunks:
-            lit, px, cam = ch["image"], ch.pop("pixels"), ch["camera"]
-            img = np.zeros((cam.height, cam.width, 4), np.float32)
-            img[px[:, 0], px[:, 1], :3] = lit() if callable(lit) else lit
-            img[px[:, 0], px[:, 1], 3] = 1.0
-            ch["image"] = img
+        images, depths = _lit_images(chunks, lit_texels)
         stats.add_time("relight", time.perf_counter() - t0)
         sources = {s: model.vertices[s] for s in plan.sources}
-        return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance)
+        return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance, images=images,
+                        depths=depths)
 
     # ------------------------------------------------------------ eyes, teeth
     def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats,
@@ -461,6 +469,40 @@ class Renderer:
         front[ok] = np.einsum("nd,nd->n", self._scene.face_normals()[behind.tri[ok]], d[ok]) < 0
         sel = part[front]
         hits.tri[sel], hits.bary[sel], hits.t[sel] = behind.tri[front], behind.bary[front], start[front] + behind.t[front]
+
+
+def _lit_images(chunks: list[dict], lit_texels: list[tuple]):
+    """The chunks' lit images and depth maps for :class:`.frame.LitFrame`, made on the device: flat Floats,
+    H*W*4 (lit RGB, coverage) and H*W per chunk, in order. ``lit_texels`` per chunk: (the lit colours
+    (N, 3) — an array, or the compression method's reader whose ``device`` holds the kernel's (r, g, b) —,
+    the texels' pixel indices (N,), their coverage (N,), the field's depth map (Float, H*W)). Pixels
+    without a texel hold 0; the same values as lit images filled in NumPy, without copying every chunk's
+    whole image through the host. One kernel per chunk (evaluated chunk by chunk: one fused kernel of all
+    chunks would change with their count and compile anew)."""
+    import drjit as dr
+
+    mi = ensure_variant()
+    Float, UInt32 = mi.Float, mi.UInt32
+    sizes = [ch["shape"][0] * ch["shape"][1] for ch in chunks]
+    total = int(sum(sizes))
+    images = dr.zeros(Float, max(4 * total, 4))
+    depths = dr.zeros(Float, max(total, 1))
+    dr.eval(images, depths)
+    off = 0
+    for size, (lit, pixels, coverage, depth) in zip(sizes, lit_texels):
+        rgb = getattr(lit, "device", None)
+        if rgb is None:
+            values = np.asarray(lit() if callable(lit) else lit, np.float32)
+            rgb = [to_jit(Float, values[:, k]) for k in range(3)]
+        if len(pixels):
+            at = to_jit(UInt32, (pixels.astype(np.uint32) + np.uint32(off)) * np.uint32(4))
+            for k in range(3):
+                dr.scatter(images, rgb[k], at + k)
+            dr.scatter(images, to_jit(Float, coverage), at + 3)
+        dr.scatter(depths, depth, dr.arange(UInt32, size) + dr.opaque(UInt32, off))
+        dr.eval(images, depths)
+        off += size
+    return images, depths
 
 
 def _frame_key(target, weights, camera, env, spp, seed, parts) -> str:
