@@ -46,7 +46,7 @@ from .extensions import check_extensions, extensions_from_template, place_in_exp
 from .hand import HandInputs, Template, read_hand_inputs
 from .overrides import fixed_positions
 from .morph import CoarseMorph, choose_references, coarse_neighbourhoods, deformation_distances
-from .proxies import proxies_for
+from .proxies import cone_weights, proxies_for
 from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
@@ -787,8 +787,11 @@ class Registrar:
             values = self._dot_fill(inp, field_, valid)
             self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
             npix += len(inp)
-            d1 = np.array(d0, copy=True)     # the proxy through the same fill: the residual dot response
-            d1[inp.pixels[:, 0], inp.pixels[:, 1]] = self._dot_fill(inp, np.asarray(d0)[None], valid)[0]
+            # the diffuse proxy of the dot-free images just written (the same linear combination of the
+            # lights as d0, over the filled values): the residual dot response of what was stored
+            d1 = np.array(d0, copy=True)
+            w = cone_weights(self.cap.rig.lights, cam, self.opt.cone_deg).astype(np.float32)
+            d1[inp.pixels[:, 0], inp.pixels[:, 1]] = np.tensordot(w, np.asarray(values, np.float32), axes=(0, 0))
             r0 = np.maximum(self.filter.response(d0), 0) / s
             r1 = np.maximum(self.filter.response(d1), 0) / s
             if len(uv):
