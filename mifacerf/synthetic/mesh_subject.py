@@ -454,7 +454,7 @@ class MeshSubject:
         self._build_uv(mesh, sk, spec, res)
 
         # template and dots on the visible skin
-        from .mesh_template import build_mesh_template
+        from .mesh_template import build_mesh_template, template_coverage
 
         if cameras is None:
             from ..rig import preset
@@ -467,6 +467,9 @@ class MeshSubject:
         tpl.eyes = {n: {"centre": self.eye_centres[n], "radius": self.eye_radius} for n in self.eye_centres}
         tpl.teeth = self._teeth_strips()
         tpl = self._extensions(tpl)
+        info["coverage_with_extensions"] = template_coverage(self.skin_rest, self.skin_faces, info["visible"],
+                                                             tpl.neutral, np.asarray(tpl.triangles),
+                                                             reach=0.5 * info["spacing"])[0]
         self.template, self.template_info = tpl, info
         self.dot_tri, self.dot_bary = info["dot_tri"], info["dot_bary"]
         self.dots_neutral = np.einsum("nk,nkj->nj", self.dot_bary, self.skin_rest[self.skin_faces[self.dot_tri]])
@@ -478,7 +481,9 @@ class MeshSubject:
                       f"{len(tpl.kinds)} vertices, "
                       f"{len(tpl.triangles)} triangles, margins: {', '.join(info['margins']) or 'none'}, marks: "
                       f"{', '.join(info['marks']) or 'none'}; covers {100 * info['coverage']:.1f} % of the visible skin "
-                      f"({100 * info['region_coverage']:.1f} % of the skin seen in every shape)")
+                      f"({100 * info['region_coverage']:.1f} % of the skin seen in every shape"
+                      f"{', off the ears' if info['ears_to_extensions'] else ''}; "
+                      f"{100 * info['coverage_with_extensions']:.1f} % with the extensions)")
 
         # textures: the user's albedo (or plain skin) with the dots painted in
         self._albedo_clean = self._base_albedo(spec, res)

@@ -458,20 +458,54 @@ def coarse_choice(P, motions, candidates, k: int = 18, motion_weight: float = 2.
     return candidates[farthest_points(X, k, centre)]
 
 
+def protrudes(V, mark, min_mm: float = 8.0) -> bool:
+    """Whether the skin at an ear mark is an ear: at the mark's height, the skin 25-40 mm in front of it
+    and behind it (where there is skin) reaches on average at least ``min_mm`` less far sideways (a head
+    without ears, or with its ears cut off, has its widest point there and keeps its dots there)."""
+    side = np.sign(mark[0] - V[:, 0].mean()) or 1.0
+    band = (np.abs(V[:, 1] - mark[1]) < 0.005) & (side * (V[:, 0] - mark[0]) > -0.1)
+    lat = side * (V[:, 0] - V[:, 0].mean())
+    reach = []
+    for lo, hi in ((0.025, 0.040), (-0.040, -0.025)):
+        sel = band & (V[:, 2] - mark[2] >= lo) & (V[:, 2] - mark[2] <= hi)
+        if sel.any():
+            reach.append(float(lat[sel].max()))
+    m = float(side * (mark[0] - V[:, 0].mean()))
+    return bool(reach) and m - float(np.mean(reach)) >= min_mm * 1e-3
+
+
+def ear_zones(V, F, ear_marks) -> np.ndarray:
+    """(F,) bool the skin triangles of the ears: within the extensions' ``EAR_RADIUS`` of an ear mark and
+    beyond it sideways as the extensions' ear rule counts (:func:`.template_extensions.extension_mesh`)."""
+    from .template_extensions import EAR_RADIUS
+
+    C = V[F].mean(axis=1)
+    c = V.mean(axis=0)
+    out = np.zeros(len(F), bool)
+    for p in ear_marks:
+        out |= (np.linalg.norm(C - p, axis=1) < EAR_RADIUS) & (np.abs(C[:, 0] - c[0]) > abs(p[0] - c[0]) - 0.012)
+    return out
+
+
 def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye_centres=None,
-                        min_views: int = 2, poses=None):
+                        min_views: int = 2, poses=None, ear_extensions: bool = True):
     """The template of a skin surface ``V`` (V, 3), ``F`` (F, 3) seen by ``cameras``.
 
     ``poses``: the skin's vertices ``V_k`` and occluder ``(V, F)`` of every further expression the
     capture photographs [(V_k, occluder_k), ...]: dots only where ``min_views`` cameras see them in
     the neutral *and in each of these* (an open jaw hides its underside from the upper cameras), and
     the coarse points spread over the skin's motion in them as well as over its shape.
+    ``ear_extensions``: where an ear mark is on an ear that sticks out (:func:`protrudes`), no dot on
+    that ear (:func:`ear_zones`) and no template triangle reaching the mark (on the ear's rim: chords
+    from the cheek's dots to it cover the ear and hide it from the extensions, which mesh the ear on
+    the skin, rigid with the head).
 
     Returns ``(template, info)``; ``info``: ``visible`` (F,) bool, ``covered`` (F,) bool,
     ``coverage`` (share of the visible skin's area), ``dot_tri``, ``dot_bary``, ``dot_views`` (cameras
     seeing each dot in the neutral), ``dot_views_min`` (... the fewest over the poses), ``margins`` found,
     ``marks`` found, ``spacing`` (m), ``region`` (F,) bool (the skin ``min_views`` cameras see in every pose),
-    ``region_area`` (m²), ``region_coverage`` (the share of it the template covers)."""
+    ``region_area`` (m²), ``region_coverage`` (the share of it the template covers), ``ears_to_extensions``
+    (how many ears were left to the extensions)."""
     from ..geometry.meshscene import MeshScene
     from .mesh_subject import MeshSubjectError
 
@@ -489,6 +523,11 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     loops = {k: r for k, r in ((k, visible_ring(V, F, lp, vcount >= min_views)) for k, lp in loops.items())
              if len(r) >= 6}
     margin_pts = V[np.concatenate([np.asarray(lp) for lp in loops.values()])] if loops else np.zeros((0, 3))
+    nose_tip = V[int(np.argmax(V[:, 2]))]
+    marks = head_marks(V, vcount, eye_centres, nose_tip)
+    ears = [V[v] for k, v in marks.items() if k.startswith("ear") and ear_extensions and protrudes(V, V[v])]
+    if ears:
+        region &= ~ear_zones(V, F, ears)
     dot_tri, dot_bary = sample_dots(V, F, region, n_dots, seed, avoid=margin_pts, avoid_dist=0.4 * spacing,
                                     keep=_seen_in_every_pose(V, F, scenes, cameras, min_views))
     dots = np.einsum("nk,nkj->nj", dot_bary, V[F[dot_tri]])
@@ -518,8 +557,6 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
             tri.append(t)
             bary.append(b)
         holes[hole] = list(range(start, len(kinds)))
-    nose_tip = V[int(np.argmax(V[:, 2]))]
-    marks = head_marks(V, vcount, eye_centres, nose_tip)
     for name, v in marks.items():
         t, b = _vertex_binding(F, v)
         kinds.append("ear" if name.startswith("ear") else "nose_bridge")
@@ -535,6 +572,9 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     T = voronoi_dual(V, F, labels, P, fn)
     for loop in holes.values():            # cells meet beyond an opening's corners: keep the opening open
         T = T[~np.isin(T, loop).all(axis=1)]
+    if ears:                               # the ear marks lie on the ears' rims: triangles from the cheek's dots to
+        ids = [i for i, nm in enumerate(names) if nm in ("ear_L", "ear_R") and any(np.allclose(P[i], e) for e in ears)]
+        T = T[~np.isin(T, ids).any(axis=1)]     # them are chords over the ear that hide it from the extensions
     # coarse points: farthest-point sampling over well-seen dots (in shape and motion), their own dual
     good = np.nonzero(dot_views_min >= 3)[0]
     if len(good) < 18:
@@ -558,7 +598,8 @@ def build_mesh_template(V, F, occluder, cameras, n_dots: int, seed: int = 0, eye
     info = {"visible": visible, "covered": covered, "coverage": coverage, "dot_tri": dot_tri,
             "dot_bary": dot_bary, "dot_views": dot_views, "dot_views_min": dot_views_min, "margins": sorted(loops),
             "marks": sorted(marks), "spacing": spacing, "visible_area": float(area), "n_poses": len(scenes) - 1,
-            "region": region, "region_area": float(tot[region].sum()), "region_coverage": region_coverage}
+            "region": region, "region_area": float(tot[region].sum()), "region_coverage": region_coverage,
+            "ears_to_extensions": len(ears)}
     return tpl, info
 
 
