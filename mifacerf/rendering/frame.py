@@ -179,6 +179,14 @@ class LitFrame:
         self.depths = depths if depths is not None else to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
         self.weights = to_jit(mi.Float, np.concatenate(w_parts) if w_parts else np.zeros(1))
         self.fallback = to_jit(mi.Float, np.concatenate(f_parts) if f_parts else np.zeros(1))
+        # per target triangle, the chunks with a weight (either tier) at one of its vertices, in chunk order:
+        # a sample loops over its triangle's only (any other chunk adds +0.0 there: the same sums bit for bit;
+        # a drive frame's §5 weights touch ~128 chunks, a triangle ~10-20)
+        live = np.stack([(w > 0) | (f > 0) for w, f in zip(w_parts, f_parts)], axis=1) if chunks else \
+            np.zeros((len(target), 0), bool)
+        per_tri = live[self.triangles_np].any(axis=1)                     # (F, chunks)
+        self.chunk_start = to_jit(mi.UInt32, np.concatenate([[0], np.cumsum(per_tri.sum(1))]).astype(np.uint32))
+        self.chunk_list = to_jit(mi.UInt32, np.append(np.nonzero(per_tri)[1], 0).astype(np.uint32))
 
     # ------------------------------------------------------------------ kernel
     def barycentric(self, tri, p):
@@ -190,7 +198,8 @@ class LitFrame:
 
         ``covered``: some chunk saw the point; ``fell_back``: only without the depth test.
 
-        A Dr.Jit function (traceable inside Mitsuba kernels): a symbolic loop over chunks.
+        A Dr.Jit function (traceable inside Mitsuba kernels): a symbolic loop over the chunks with a weight
+        at the hit's triangle.
         """
         import drjit as dr
 
@@ -202,12 +211,14 @@ class LitFrame:
         n = dr.width(tri)
         stride = self.stride
         tol = dr.opaque(Float, self.depth_tolerance)
-        n_chunks = dr.opaque(UInt32, self.n_chunks)
+        first = dr.gather(UInt32, self.chunk_start, tri, active)
+        last = dr.gather(UInt32, self.chunk_start, tri + 1, active)
 
-        def cond(i, *_):
-            return i < n_chunks
+        def cond(j, *_):
+            return j < last
 
-        def body(i, *acc):
+        def body(j, *acc):
+            i = dr.gather(UInt32, self.chunk_list, j, active)
             base = i * stride
 
             def P(k):
@@ -264,10 +275,10 @@ class LitFrame:
             for k, (wt, c3) in enumerate(((dr.select(seen, a * kd, 0.0), seen_col), (dr.select(seen, af * kd, 0.0), seen_col),
                                           (dr.select(ok, af * ka, 0.0), any_col))):
                 out += [acc[4 * k + ch] + wt * c3[ch] for ch in range(3)] + [acc[4 * k + 3] + wt]
-            return (i + 1, *out)
+            return (j + 1, *out)
 
         zeros = [dr.opaque(Float, 0, n) for _ in range(12)]
-        state = dr.while_loop((dr.opaque(UInt32, 0, n), *zeros), cond, body)
+        state = dr.while_loop((UInt32(first), *zeros), cond, body)
         acc = state[1:]
         primary, fallback, anyway = acc[3] > 1e-9, acc[7] > 1e-9, acc[11] > 1e-9
         pick = [dr.select(primary, acc[j], dr.select(fallback, acc[4 + j], acc[8 + j])) for j in range(4)]
