@@ -34,11 +34,19 @@ def check_field(field: np.ndarray, expression: str, camera: str, path_of=None, l
     if f.ndim != 4 or f.shape[0] == 0:
         return
     flat = f.reshape(f.shape[0], -1)
-    finite = np.isfinite(flat)
-    bad_finite = ~finite.all(axis=1)
+    # one pass for the max and one for the min of every image: a NaN propagates into both, +Inf into the
+    # max, -Inf into the min, so an image holds a non-finite value exactly when one of them is not finite
     with np.errstate(invalid="ignore"):
-        peak = np.maximum(np.where(finite, flat, -np.inf).max(axis=1), PEAK_FLOOR)
-        low = np.where(finite, flat, np.inf).min(axis=1)
+        hi, lo = flat.max(axis=1), flat.min(axis=1)
+    bad_finite = ~(np.isfinite(hi) & np.isfinite(lo))
+    peak = np.maximum(hi, PEAK_FLOOR)
+    low = lo.copy()
+    if bad_finite.any():   # the finite values' peak and low of those images only
+        rows = np.flatnonzero(bad_finite)
+        finite = np.isfinite(flat[rows])
+        with np.errstate(invalid="ignore"):
+            peak[rows] = np.maximum(np.where(finite, flat[rows], -np.inf).max(axis=1), PEAK_FLOOR)
+            low[rows] = np.where(finite, flat[rows], np.inf).min(axis=1)
     bad_negative = low < -NEGATIVE_TOLERANCE * peak
     bad = np.flatnonzero(bad_finite | bad_negative)
     if not bad.size:
@@ -49,7 +57,7 @@ def check_field(field: np.ndarray, expression: str, camera: str, path_of=None, l
         f"expression {expression}, camera {camera}, light {light}"
     more = f"; {bad.size - 1} more image(s) of this camera too" if bad.size > 1 else ""
     if bad_finite[i]:
-        n = int((~finite[i]).sum())
+        n = int((~np.isfinite(flat[i])).sum())
         raise RadianceError(f"{where}: {n} NaN/Inf pixel value(s): not radiance{more}")
     n = int((flat[i] < -NEGATIVE_TOLERANCE * peak[i]).sum())
     raise RadianceError(f"{where}: {n} pixel value(s) down to {float(low[i]):.4g}, below the tolerance "

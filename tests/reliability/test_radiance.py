@@ -4,6 +4,8 @@ import shutil
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mifacerf.errors import MifacerfError
 from mifacerf.validation import NEGATIVE_TOLERANCE, RadianceError, check_field
@@ -30,6 +32,47 @@ def test_non_finite_is_refused(value):
     f[3, 1, 1, 2] = value
     with pytest.raises(RadianceError, match="light 3: 1 NaN/Inf"):
         check_field(f, "neutral", "cam1")
+
+
+def _reference_bad_images(f):
+    """The rule of mifacerf.validation, image by image over the finite values (the docstring's words)."""
+    bad, kinds = [], []
+    for i, img in enumerate(f):
+        v = img.reshape(-1)
+        ok = np.isfinite(v)
+        peak = max(float(v[ok].max()) if ok.any() else -np.inf, 1e-3)
+        low = float(v[ok].min()) if ok.any() else np.inf
+        if not ok.all() or low < -NEGATIVE_TOLERANCE * peak:
+            bad.append(i)
+            kinds.append(f"{int((~ok).sum())} NaN/Inf" if not ok.all() else
+                         f"{int((v < -NEGATIVE_TOLERANCE * peak).sum())} pixel value.s. down to .*negative radiance")
+    return bad, kinds
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 5), st.integers(0, 6))
+def test_the_one_pass_check_refuses_exactly_what_the_rule_refuses(seed, n_images, n_faults):
+    """NaN, ±Inf, negatives at or around the tolerance, all-dark images and images that are all NaN."""
+    rng = np.random.default_rng(seed)
+    f = rng.uniform(0, 0.6, (n_images, 3, 4, 3)).astype(np.float32)
+    if rng.random() < 0.3:
+        f[rng.integers(n_images)] = rng.uniform(0, 1e-4, (3, 4, 3))           # all-dark: the peak floor
+    for _ in range(n_faults):
+        i, y, x, c = rng.integers(n_images), rng.integers(3), rng.integers(4), rng.integers(3)
+        kind = rng.integers(5)
+        if kind == 3:
+            f[i] = np.nan
+        else:
+            peak = max(float(f[i][np.isfinite(f[i])].max(initial=0.0)), 1e-3)
+            f[i, y, x, c] = [np.nan, np.inf, -np.inf][kind] if kind < 3 else \
+                -NEGATIVE_TOLERANCE * peak * rng.choice([0.5, 0.999, 1.001, 3.0])
+    bad, kinds = _reference_bad_images(f)
+    if not bad:
+        check_field(f, "e", "c")
+        return
+    more = rf".*; {len(bad) - 1} more" if len(bad) > 1 else r"(?!.*more image)"
+    with pytest.raises(RadianceError, match=rf"light {bad[0]}: {kinds[0]}{more}"):
+        check_field(f, "e", "c")
 
 
 def test_build_refuses_a_capture_with_a_negative_patch(toy_truth, tmp_path):
