@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..rendering.chunks import plan_frame
-from ..rendering.frame import OUTLINE_WEIGHT, outline_texels, resolve_pixels
+from ..rendering.frame import MIN_VIEW_COS, OBLIQUE_RATIO, OUTLINE_WEIGHT, grazing_tolerance_np, outline_texels, resolve_pixels, view_cosine_np
 
 
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
@@ -38,6 +38,7 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
     idx = np.flatnonzero(hits.valid)
     tri, bary = hits.tri[idx], hits.bary[idx]
     tv = model.triangles[tri]
+    cos_r = view_cosine_np(camera, np.einsum("nk,nkd->nd", bary, plan.target[tv]), plan.target[tv])
     # accumulated colour and weight: primary tier seen, fallback tier seen, fallback without the
     # depth test (the documented last resort)
     acc = {k: np.zeros((len(idx), 3)) for k in ("primary", "fallback", "any")}
@@ -59,6 +60,8 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             p_s = np.einsum("nk,nkd->nd", bary, model.vertices[s][tv])
             uv, _ = cam.project(p_s)
             dist = np.linalg.norm(p_s - cam.centre, axis=1)
+            cos_v = view_cosine_np(cam, p_s, model.vertices[s][tv])
+            tol_p = grazing_tolerance_np(cos_v, dist, cam, tol)   # the renderer's oblique allowance
             a_p = (bary * a[s, c][tv]).sum(1)  # the chunk's weight at the sample, primary tier
             f_p = (bary * fb[s, c][tv]).sum(1)  # and fallback tier
             aw = bary * (a[s, c] + fb[s, c])[tv]  # lighting interpolated over either tier's vertices
@@ -72,11 +75,11 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
             for dy in (0, 1):
                 for dx in (0, 1):
                     xx, yy = x0 + dx, y0 + dy
-                    ok = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h) & np.isfinite(uv).all(1) & (a_p + f_p > 0)
+                    ok = (xx >= 0) & (yy >= 0) & (xx < w) & (yy < h) & np.isfinite(uv).all(1) & (a_p + f_p > 0) & ((cos_v >= MIN_VIEW_COS) | (cos_v >= OBLIQUE_RATIO * cos_r))
                     xs, ys = np.where(ok, xx, 0), np.where(ok, yy, 0)
                     ok &= have[ys, xs]
                     wt_any = np.where(ok, (fx if dx else 1 - fx) * (fy if dy else 1 - fy), 0.0)
-                    wt = np.where(np.abs(depth[ys, xs] - dist) <= tol, wt_any, 0.0)
+                    wt = np.where(np.abs(depth[ys, xs] - dist) <= tol_p, wt_any, 0.0)
                     lit = np.einsum("nlc,nlc->nc", dense[ys, xs], lam)  # Σ over every light
                     for tested, weight_tap in ((True, wt), (False, wt_any)):
                         for off, wtap in ((False, weight_tap), (True, weight_tap * inner[ys, xs])):

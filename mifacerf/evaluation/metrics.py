@@ -79,6 +79,19 @@ def composite_psnr(image, truth, plate, coverage: float = 1e-3) -> float:
     return psnr(over(image, plate), over(truth, plate), mask)
 
 
+def composite_psnr_two_truths(image, truth_a, truth_b, plate, coverage: float = 1e-3) -> dict:
+    """:func:`composite_psnr` against a Monte Carlo truth rendered as two independent halves (its mean the
+    truth), with the truth's own noise taken out as in :func:`psnr_two_truths` (the composites over the
+    plate; scored where the render or the mean truth has alpha above ``coverage``): ``psnr`` (= the plain
+    composite PSNR), ``noise_floor``, ``psnr_noise_corrected``."""
+    image, a, b = np.asarray(image), np.asarray(truth_a), np.asarray(truth_b)
+    if image.shape[-1] != 4 or a.shape[-1] != 4 or b.shape[-1] != 4:
+        raise ValueError("composite_psnr_two_truths needs premultiplied RGBA images")
+    t = 0.5 * (a.astype(np.float64) + b)
+    mask = (image[..., 3] > coverage) | (t[..., 3] > coverage)
+    return psnr_two_truths(over(image, plate), over(a, plate), over(b, plate), mask)
+
+
 def silhouette_iou(alpha, truth_alpha) -> float:
     """Soft intersection over union of two coverages in [0, 1]: ``Σ min(a, t) / Σ max(a, t)``
     (binary masks give the usual IoU; anti-aliased edges count by their coverage)."""

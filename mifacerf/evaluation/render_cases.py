@@ -38,8 +38,8 @@ from ..camera import ring_camera
 from ..execution import Executor, worker_cached
 from ..rendering.renderer import RenderStats
 from .masks import classify_pixels, face_mask, triangle_mask
-from .metrics import (REGIONS, composite_psnr, coverage_picture, error_regions, over, psnr, psnr_two_truths,
-                      silhouette_iou, summary, uncovered)
+from .metrics import (REGIONS, composite_psnr, composite_psnr_two_truths, coverage_picture, error_regions, over, psnr,
+                      psnr_two_truths, silhouette_iou, summary, uncovered)
 
 
 @dataclass
@@ -139,6 +139,7 @@ def evaluate(out, model_path, envs=("sky", "interior", "gradient"), n: int = 2, 
     report["summary"] = {k: {"psnr": summary([x["psnr"] for x in v]),
                              "psnr_noise_corrected": summary([x["psnr_noise_corrected"] for x in v]),
                              "psnr_composite": summary([x["psnr_composite"] for x in v]),
+                             "psnr_composite_noise_corrected": summary([x["psnr_composite_noise_corrected"] for x in v]),
                              "silhouette_iou": summary([x["silhouette_iou"] for x in v]),
                              "uncovered": summary([x["uncovered"] for x in v]),
                              "error_share": {r: summary([x["regions"][r]["error_share"] for x in v]) for r in REGIONS},
@@ -209,7 +210,10 @@ def run_case(context: CaseContext, unit: tuple) -> tuple[dict, list]:
              "fields": len(stats.fields_loaded)}
     plate = environment_plate(face.environment(env), cam)
     share, _ = uncovered(img[..., 3], truth[..., 3])
+    comp = composite_psnr_two_truths(img, halves[0], halves[1], plate)
     entry.update({"psnr_composite": composite_psnr(img, truth, plate),
+                  "psnr_composite_noise_corrected": comp["psnr_noise_corrected"],
+                  "truth_noise_psnr_composite": comp["noise_floor"],
                   "silhouette_iou": silhouette_iou(img[..., 3], truth[..., 3]), "uncovered": share,
                   "regions": error_regions(img, truth, plate, modelled)})
     if case.kind == "d":

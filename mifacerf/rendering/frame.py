@@ -14,7 +14,10 @@ geometry), projected into camera ``c`` with its lens distortion; the lit image i
 read there bilinearly (colour / coverage) from those of the 2x2 texels whose seen
 surface lies within ``depth_tolerance`` of ``p_s``'s distance (occlusion-aware
 filtering: a texel showing an occluder, or a surface behind a silhouette, is not
-used); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's two tiers
+used; on a surface camera ``c`` sees obliquely the tolerance grows with the depth's slope there,
+:func:`grazing_tolerance`); a texel camera ``c`` sees more obliquely than ``MIN_VIEW_COS`` is not read
+where the render view sees the point at least twice as squarely (``OBLIQUE_RATIO``; the renderer sets
+``LitFrame.view_origin``, the integrator plugin does not: rule off); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's two tiers
 (:mod:`.chunks`: primary, fallback). Result: Σ a·colour / Σ a over the chunks that see
 the point, with the primary weights; where no primary chunk sees it, with the fallback
 weights; where no chunk sees it, over the chunks regardless of the depth test with the
@@ -39,6 +42,10 @@ from ..jitarrays import to_jit
 from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
 from ..variant import ensure_variant
 
+#: the fill's smoothing (Gaussian sigma, a fraction of the image's larger side; :func:`resolve_pixels`)
+FILL_SIGMA = 1.0 / 32
+
+
 def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, height: int, width: int,
                    spp: int) -> tuple[np.ndarray, int]:
     """Box-filter a frame's hit samples into (H, W, 4) float32 linear RGB premultiplied by alpha.
@@ -47,8 +54,11 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
     (N, 3) its shaded colour, used where ``covered`` (N,) bool (some field saw the point). Alpha: hits /
     ``spp``, the geometry's coverage of the pixel. RGB: alpha times the mean of the pixel's covered
     samples — a pixel whose samples are all covered gets exactly Σ colour / ``spp``; a pixel with hits
-    but no covered sample takes the mean of the nearest pixel (Euclidean, in the image) that has one;
-    with no covered sample in the whole frame, black. Returns (image, pixels filled that way).
+    but no covered sample takes the covered pixels' mean colours smoothed over the gap (a normalised
+    Gaussian of sigma ``FILL_SIGMA`` × the image's larger side; where none lies that near, the nearest
+    pixel's, Euclidean in the image); with no covered sample in the whole frame, black. Returns (image,
+    pixels filled that way). An unseen surface (the back of the neck beyond the outermost camera) so
+    takes the low frequencies of what surrounds it, not streaks of its neighbours' colours.
     """
     n = height * width
     pix = np.asarray(pix, np.int64)
@@ -66,6 +76,15 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
         _, (ii, jj) = distance_transform_edt((count == 0).reshape(height, width), return_indices=True)
         nearest = (ii * width + jj).reshape(-1)
         mean[empty] = mean[nearest[empty]]
+        sigma = FILL_SIGMA * max(height, width)
+        if sigma > 0:       # the covered pixels' colours smoothed over the gap (normalised convolution)
+            from scipy.ndimage import gaussian_filter
+
+            have = (count > 0).reshape(height, width).astype(np.float64)
+            wsum = gaussian_filter(have, sigma, mode="constant").reshape(-1)[empty]
+            smooth = np.stack([gaussian_filter(np.where(count > 0, mean[:, ch], 0.0).reshape(height, width), sigma,
+                                               mode="constant").reshape(-1)[empty] for ch in range(3)], -1)
+            mean[empty] = np.where((wsum > 1e-3)[:, None], smooth / np.maximum(wsum, 1e-30)[:, None], mean[empty])
         filled = int(empty.sum())
     rgba = np.empty((n, 4))
     rgba[:, :3] = (total + (hits - count)[:, None] * mean) / spp
@@ -128,6 +147,69 @@ def mark_outline(image: np.ndarray, depth: np.ndarray, mark: bool = True) -> np.
     return out
 
 
+#: the depth test's allowance for a surface seen obliquely, in pixels of depth slope (:func:`grazing_tolerance`)
+GRAZING_SLACK = 1.5
+#: ... and its cap, in depth tolerances
+GRAZING_CAP = 4.0
+#: a chunk reads no texel of a point its camera sees more obliquely than this (|cos| of the angle between
+#: the view ray and the source triangle's normal): a texel seen edge-on holds the grazing highlight of that
+#: camera's view (the sky's reflection, bright streaks) or a shadowed sliver (black), not the surface a
+#: view from elsewhere sees; a point no other chunk sees is filled (:func:`resolve_pixels`)
+MIN_VIEW_COS = 0.3
+#: ... when the render view sees the point at least 1 / OBLIQUE_RATIO times as squarely (a render from the
+#: capture camera itself keeps every texel it saw)
+OBLIQUE_RATIO = 0.5
+
+
+def view_cosine(P, p, q):
+    """|cos| of the angle between the view ray of the camera whose table row ``P`` gives to the point ``p``
+    (three Floats) and the normal of its source triangle ``q`` (three vertices of three Floats)."""
+    centre = [-(P(j) * P(9) + P(3 + j) * P(10) + P(6 + j) * P(11)) for j in range(3)]   # -R^T t
+    return cosine_to(centre, p, q)
+
+
+def cosine_to(centre, p, q):
+    """|cos| of the angle between the ray from ``centre`` to ``p`` and the normal of the triangle ``q``."""
+    import drjit as dr
+
+    e1 = [q[1][d] - q[0][d] for d in range(3)]
+    e2 = [q[2][d] - q[0][d] for d in range(3)]
+    n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]]
+    ray = [p[d] - centre[d] for d in range(3)]
+    dot = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2]
+    norms = dr.sqrt((n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) * (ray[0] * ray[0] + ray[1] * ray[1] + ray[2] * ray[2]))
+    return dr.minimum(dr.abs(dot) * dr.rcp(dr.maximum(norms, 1e-30)), 1.0)
+
+
+def grazing_tolerance(P, cos, dist, tol, slack):
+    """The depth tolerance at a point ``p`` (three Floats) of the source triangle ``q`` (three vertices of three
+    Floats) seen by the camera whose table row ``P`` gives, at ``dist`` from its centre: ``tol`` plus ``slack``
+    pixels of the surface's depth slope in that camera (a pixel's footprint ``dist / f`` times the tangent of
+    the angle between the view ray and the triangle's normal), at most ``GRAZING_CAP`` × ``tol`` more. A
+    field's texel holds the depth at its centre; the bilinear taps lie up to a pixel from the point, so on a
+    surface seen edge-on (the back of the neck in the outermost camera) the depths of the very surface
+    differ by more than ``tol`` and the point fell to the no-depth-test tier, reading whatever those texels
+    show. (NumPy twin: :func:`grazing_tolerance_np`.)"""
+    import drjit as dr
+
+    tan = dr.sqrt(dr.maximum(1.0 - cos * cos, 0.0)) * dr.rcp(dr.maximum(cos, 1e-3))
+    return tol + dr.minimum(slack * dist * dr.rcp(P(12)) * tan, GRAZING_CAP * tol)
+
+
+def view_cosine_np(camera, p, q) -> np.ndarray:
+    """:func:`view_cosine` in NumPy: ``p`` (N, 3) points of the triangles ``q`` (N, 3, 3) in ``camera``."""
+    n = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
+    ray = p - camera.centre
+    return np.minimum(np.abs((n * ray).sum(1)) / np.maximum(np.linalg.norm(n, axis=1) * np.linalg.norm(ray, axis=1),
+                                                            1e-30), 1.0)
+
+
+def grazing_tolerance_np(cos, dist, camera, tol: float, slack: float = GRAZING_SLACK) -> np.ndarray:
+    """:func:`grazing_tolerance` in NumPy (``cos`` from :func:`view_cosine_np`, ``dist`` (N,))."""
+    tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-3)
+    return tol + np.minimum(slack * dist / camera.K[0, 0] * tan, GRAZING_CAP * tol)
+
+
 class LitFrame:
     """The shading state of one frame. Built by :meth:`mifacerf.rendering.renderer.Renderer.light_frame`.
 
@@ -141,7 +223,8 @@ class LitFrame:
     """
 
     def __init__(self, target: np.ndarray, triangles: np.ndarray, chunks: list[dict], sources: dict,
-                 depth_tolerance: float = 0.004, outline: bool = True, images=None, depths=None):
+                 depth_tolerance: float = 0.004, outline: bool = True, images=None, depths=None,
+                 grazing_slack: float = GRAZING_SLACK, min_view_cos: float = MIN_VIEW_COS):
         mi = ensure_variant()
         self.mi = mi
         self.n_chunks = len(chunks)
@@ -151,6 +234,10 @@ class LitFrame:
         self.triangles = to_jit(mi.UInt32, self.triangles_np.reshape(-1))
         self.target = to_jit(mi.Float, self.target_np.reshape(-1))
         self.depth_tolerance = float(depth_tolerance)
+        self.grazing_slack = float(grazing_slack)
+        self.min_cos = float(min_view_cos)
+        #: the render camera's centre (3,), set by the renderer for :data:`MIN_VIEW_COS`'s rule (None: no rule)
+        self.view_origin = None
         src_ids = sorted(sources)
         src_offset = {s: i * len(target) * 3 for i, s in enumerate(src_ids)}
         self.sources = to_jit(mi.Float, np.concatenate([np.asarray(sources[s], np.float64).reshape(-1)
@@ -211,6 +298,15 @@ class LitFrame:
         n = dr.width(tri)
         stride = self.stride
         tol = dr.opaque(Float, self.depth_tolerance)
+        slack = dr.opaque(Float, self.grazing_slack)
+        min_cos = dr.opaque(Float, self.min_cos)
+        # how squarely the render view sees each hit (target triangle's normal): 0 = no oblique-texel rule
+        cos_r = Float(0)
+        if self.view_origin is not None:
+            o = [dr.opaque(Float, float(x)) for x in np.asarray(self.view_origin, np.float64).reshape(3)]
+            qt = [[dr.gather(Float, self.target, vid[k] * 3 + d, active) for d in range(3)] for k in range(3)]
+            pt = [b[0] * qt[0][d] + b[1] * qt[1][d] + b[2] * qt[2][d] for d in range(3)]
+            cos_r = cosine_to(o, pt, qt)
         first = dr.gather(UInt32, self.chunk_start, tri, active)
         last = dr.gather(UInt32, self.chunk_start, tri + 1, active)
 
@@ -230,13 +326,17 @@ class LitFrame:
             a = Float(0)
             af = Float(0)
             p = [Float(0), Float(0), Float(0)]
+            q = [[dr.gather(Float, self.sources, src + vid[k] * 3 + d, active) for d in range(3)] for k in range(3)]
             for k in range(3):
                 a += b[k] * dr.gather(Float, self.weights, woff + vid[k], active)
                 af += b[k] * dr.gather(Float, self.fallback, woff + vid[k], active)
                 for d in range(3):
-                    p[d] += b[k] * dr.gather(Float, self.sources, src + vid[k] * 3 + d, active)
+                    p[d] += b[k] * q[k][d]
             u, v, dist, zc, wi, hi = project(P, p)
             use = active & ((a > 0) | (af > 0)) & (zc > 0)
+            cos_v = view_cosine(P, p, q)
+            tol_p = grazing_tolerance(P, cos_v, dist, tol, slack)
+            use &= (cos_v >= min_cos) | (cos_v >= OBLIQUE_RATIO * cos_r)
             # bilinear over the 2x2 texels, each tap used only if the surface camera c saw there lies
             # at the point's distance (occlusion-aware filtering); the last resort ignores depth
             # each sum twice: over every texel, and over the texels off the outline (coverage > 0; an
@@ -247,7 +347,7 @@ class LitFrame:
             for pix, wgt, inside in bilinear_taps(u, v, wi, hi, use):
                 pix = ioff + pix
                 depth = dr.gather(Float, self.depths, pix, inside)
-                wdep = dr.select(dr.abs(depth - dist) <= tol, wgt, 0.0)
+                wdep = dr.select(dr.abs(depth - dist) <= tol_p, wgt, 0.0)
                 tap = [dr.gather(Float, self.images, pix * 4 + ch, inside) for ch in range(4)]
                 t_all, t_in = dr.abs(tap[3]), dr.maximum(tap[3], 0.0)
                 for ch in range(3):

@@ -335,6 +335,7 @@ class Renderer:
             plan = plan_frame(model, target, expression_weights, camera, frame)
         stats.add_time("plan", time.perf_counter() - t0)
         lit = self.light_frame(plan, env, stats)
+        lit.view_origin = camera.centre   # frame.MIN_VIEW_COS: oblique texels only where this view sees them so too
 
         t0 = time.perf_counter()
         use_parts = bool(parts) and self._combined is not None
