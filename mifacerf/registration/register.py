@@ -30,6 +30,7 @@ placed from registered fiducials); 0 predicted only (flagged; never presented as
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -760,48 +761,63 @@ class Registrar:
     def remove_dots(self, e: Expr, reg: RegisteredExpression) -> dict:
         """Dot-free patches of every view: the registered fiducials' discs, then (``remove_unregistered``)
         any dot still detected in 2-D after that (a fiducial that could not be registered in 3-D is
-        still a yellow dot in the images)."""
+        still a yellow dot in the images). The views are filled in parallel threads (OpenCV's inpainting
+        and NumPy release the GIL) and written in camera order."""
+        from concurrent.futures import ThreadPoolExecutor
+
         ids = self.dots[reg.status[self.dots] == 1]
         before, after, npix, extra = [], [], 0, 0
-        for c, cam in enumerate(self.cams):
-            sel = ids[reg.visible[c, ids]]
-            uv, depth = cam.project(reg.vertices[sel])
-            focal = np.sqrt(cam.K[0, 0] * cam.K[1, 1])
-            r_px = self.tpl.dot_radius * focal / depth + self.opt.removal_margin_px
-            shape = (cam.height, cam.width)
-            mask = dot_mask(shape, uv, r_px)
-            valid = face_mask(e.diffuse[cam.name], 0.01)
-            d0 = e.diffuse[cam.name]
-            s = self.filter.scales.get(cam.name, 1.0)
-            if self.opt.remove_unregistered:
-                # 2-D detections left once the registered dots are painted out
-                left = np.maximum(self.filter.response(Inpainter(mask, valid).apply(d0)), 0) / s
-                peaks = local_maxima(left, self.opt.unregistered_strength) & valid & ~mask
-                pk = np.argwhere(peaks)[:, ::-1].astype(np.float64)
-                if len(pk):
-                    r_typ = self.tpl.dot_radius * focal / float(np.median(depth) if len(depth) else 1.3)
-                    mask |= dot_mask(shape, pk, r_typ + self.opt.removal_margin_px + 0.5)
-                    extra += len(pk)
-            inp = Inpainter(mask, valid)
-            field_ = e.fields[cam.name]
-            values = self._dot_fill(inp, field_, valid)
-            self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
-            npix += len(inp)
-            # the diffuse proxy of the dot-free images just written (the same linear combination of the
-            # lights as d0, over the filled values): the residual dot response of what was stored
-            d1 = np.array(d0, copy=True)
-            w = cone_weights(self.cap.rig.lights, cam, self.opt.cone_deg).astype(np.float32)
-            d1[inp.pixels[:, 0], inp.pixels[:, 1]] = np.tensordot(w, np.asarray(values, np.float32), axes=(0, 0))
-            r0 = np.maximum(self.filter.response(d0), 0) / s
-            r1 = np.maximum(self.filter.response(d1), 0) / s
-            if len(uv):
-                before.append(peak_near(r0, uv, 1.0)[1])
-                after.append(peak_near(r1, uv, 1.0)[1])
+        workers = max(1, min(len(self.cams), os.cpu_count() or 1))
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            views = pool.map(lambda c: self._dot_free_view(e, reg, ids, c), range(len(self.cams)))
+            for cam, (inp, values, b, a, x) in zip(self.cams, views):
+                self.writer.write_dotfree(e.name, cam.name, inp.pixels, values)
+                npix += len(inp)
+                extra += x
+                if b is not None:
+                    before.append(b)
+                    after.append(a)
         b = float(np.mean(np.concatenate(before))) if before else float("nan")
         a = float(np.mean(np.concatenate(after))) if after else float("nan")
         if extra:
             e.report["unregistered_dots_removed_2d"] = int(extra)
         return {"pixels": int(npix), "response_before": round(b, 4), "response_after": round(a, 4)}
+
+    def _dot_free_view(self, e: Expr, reg: RegisteredExpression, ids: np.ndarray, c: int):
+        """One view's dot removal: (Inpainter, fill values (L, P, 3), dot responses before and after at the
+        registered dots (None when the view sees none), dots removed from 2-D detections only)."""
+        cam = self.cams[c]
+        sel = ids[reg.visible[c, ids]]
+        uv, depth = cam.project(reg.vertices[sel])
+        focal = np.sqrt(cam.K[0, 0] * cam.K[1, 1])
+        r_px = self.tpl.dot_radius * focal / depth + self.opt.removal_margin_px
+        shape = (cam.height, cam.width)
+        mask = dot_mask(shape, uv, r_px)
+        valid = face_mask(e.diffuse[cam.name], 0.01)
+        d0 = e.diffuse[cam.name]
+        s = self.filter.scales.get(cam.name, 1.0)
+        extra = 0
+        if self.opt.remove_unregistered:
+            # 2-D detections left once the registered dots are painted out
+            left = np.maximum(self.filter.response(Inpainter(mask, valid).apply(d0)), 0) / s
+            peaks = local_maxima(left, self.opt.unregistered_strength) & valid & ~mask
+            pk = np.argwhere(peaks)[:, ::-1].astype(np.float64)
+            if len(pk):
+                r_typ = self.tpl.dot_radius * focal / float(np.median(depth) if len(depth) else 1.3)
+                mask |= dot_mask(shape, pk, r_typ + self.opt.removal_margin_px + 0.5)
+                extra = len(pk)
+        inp = Inpainter(mask, valid)
+        values = self._dot_fill(inp, e.fields[cam.name], valid)
+        if not len(uv):
+            return inp, values, None, None, extra
+        # the diffuse proxy of the dot-free images (the same linear combination of the lights as d0, over
+        # the filled values): the residual dot response of what is stored
+        d1 = np.array(d0, copy=True)
+        w = cone_weights(self.cap.rig.lights, cam, self.opt.cone_deg).astype(np.float32)
+        d1[inp.pixels[:, 0], inp.pixels[:, 1]] = np.tensordot(w, np.asarray(values, np.float32), axes=(0, 0))
+        r0 = np.maximum(self.filter.response(d0), 0) / s
+        r1 = np.maximum(self.filter.response(d1), 0) / s
+        return inp, values, peak_near(r0, uv, 1.0)[1], peak_near(r1, uv, 1.0)[1], extra
 
     def _dot_fill(self, inp: Inpainter, images: np.ndarray, valid: np.ndarray) -> np.ndarray:
         """Values (L, P, 3) filling ``inp``'s pixels of ``images`` (L, H, W, 3) by ``Options.dot_fill``."""
