@@ -217,10 +217,14 @@ class Renderer:
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
             fv, lin, coverage, depth = self._texel_map(s, c, f)
-            wt = f.bary * (chunk.weights + chunk.fallback)[fv]  # lit wherever either tier may read it
+            wv = chunk.weights + chunk.fallback            # lit wherever either tier may read it
+            # the texels on triangles with a weight at a vertex (the others' weight sums are 0), in texel order
+            near = np.flatnonzero((wv[model.triangles] > 0).any(axis=1)[f.tri])
+            wt = f.bary[near] * wv[fv[near]]
             wsum_t = wt.sum(1)
-            active = np.flatnonzero(wsum_t > 0)
-            coef = wt[active] / wsum_t[active, None]
+            keep_t = wsum_t > 0
+            active = near[keep_t]
+            coef = wt[keep_t] / wsum_t[keep_t, None]
             # launched now, placed below: the chunks' kernels run while the next ones are prepared
             lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
             cam = model.cameras[c]
