@@ -13,13 +13,14 @@ from __future__ import annotations
 import numpy as np
 
 from ..rendering.chunks import plan_frame
-from ..rendering.frame import MIN_VIEW_COS, OBLIQUE_RATIO, OUTLINE_WEIGHT, grazing_tolerance_np, outline_texels, resolve_pixels, view_cosine_np
+from ..rendering.frame import (MIN_VIEW_COS, OBLIQUE_RATIO, OUTLINE_WEIGHT, facing_weights, grazing_tolerance_np,
+                               outline_texels, resolve_pixels, view_cosine_np)
 
 
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
     """(H, W, 4) RGBA of the skin (no eyes/teeth pass), computed densely."""
     model = renderer.model
-    plan = plan_frame(model, target, weights, camera)
+    plan = plan_frame(model, target, facing_weights(weights, target, model.triangles, camera.centre), camera)
     basis = renderer.light_basis(env)
     T, S, C = model.n_vertices, len(model.expressions), len(model.cameras)
     # per-vertex rotated lighting for every source (identity where the weight is 0): the dense way

@@ -92,6 +92,26 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
     return rgba.reshape(height, width, 4).astype(np.float32), filled
 
 
+def facing_weights(expression_weights: np.ndarray, target: np.ndarray, triangles: np.ndarray, centre) -> np.ndarray:
+    """A frame's (T, S) expression weights with the rows of vertices the camera at ``centre`` cannot show set to
+    0: vertices of no target triangle that faces the camera (a render's trace passes back faces, so every hit
+    is on a facing triangle, and all three of its vertices keep their rows). The frame then plans, lights and
+    relights only the half of the head it shows (the extensions doubled the template with the back of the
+    head); a hit's weights, rotations and lighting are those of before."""
+    V = np.asarray(target, np.float64)
+    F = np.asarray(triangles, np.int64)
+    W = np.asarray(expression_weights)
+    if V.ndim != 2 or V.shape[1:] != (3,) or W.ndim != 2 or len(W) != len(V) or not len(F) or F.max() >= len(V) \
+            or not np.isfinite(V).all():
+        return W                     # not a frame's input: plan_frame says what is wrong
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    facing = np.einsum("fd,fd->f", n, np.asarray(centre, np.float64) - V[F[:, 0]]) > 0
+    keep = np.ones(len(V), bool)
+    keep[F.reshape(-1)] = False
+    keep[F[facing].reshape(-1)] = True
+    return W if keep.all() else np.where(keep[:, None], W, 0.0)
+
+
 def outline_texels(depth: np.ndarray) -> np.ndarray:
     """(H, W) bool: the texels of a field (finite ``depth`` (H, W), +inf where it has none) on the subject's
     outline in its camera — a 4-neighbour pixel shows the background: no texel, in a piece of the texel-free

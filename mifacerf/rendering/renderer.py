@@ -31,7 +31,7 @@ from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
 from ..variant import ensure_plugins, ensure_variant
 from .chunks import FramePlan, plan_frame
-from .frame import LitFrame, resolve_pixels
+from .frame import LitFrame, facing_weights, resolve_pixels
 from .lighting import RotatedLightBasis
 from .relight import DeviceLighting
 from ..geometry.meshscene import MeshScene
@@ -335,8 +335,9 @@ class Renderer:
         if not view_checks(target, camera, model.cameras, stats):
             return np.zeros((camera.height, camera.width, 4), np.float32)
         t0 = time.perf_counter()
-        if plan is None:
-            plan = plan_frame(model, target, expression_weights, camera, frame)
+        if plan is None:   # only the vertices of triangles facing the camera: every hit is on one (frame.py)
+            W = facing_weights(expression_weights, target, model.triangles, camera.centre)
+            plan = plan_frame(model, target, W, camera, frame)
         stats.add_time("plan", time.perf_counter() - t0)
         lit = self.light_frame(plan, env, stats)
         lit.view_origin = camera.centre   # frame.MIN_VIEW_COS: oblique texels only where this view sees them so too
