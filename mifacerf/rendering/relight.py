@@ -119,11 +119,13 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
     ids = np.arange(n_lights) if light_ids is None else np.asarray(light_ids)
     k = len(ids)
     stride = n_lights * 3
-    base_f = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(stride))
-    base_v = [to_jit(UInt32, np.asarray(vertex_ids[:, j], np.uint32) * np.uint32(k * 3)) for j in range(3)]
+    fast = isinstance(rf_device, HalfWords) and light_ids is None and n_lights % 4 == 0
+    if not fast:   # (the four-lights-at-a-time kernel reads none of these: not uploaded for it)
+        base_f = to_jit(UInt32, np.asarray(texels, np.uint32) * np.uint32(stride))
+        base_v = [to_jit(UInt32, np.asarray(vertex_ids[:, j], np.uint32) * np.uint32(k * 3)) for j in range(3)]
+        ids_dev = to_jit(UInt32, np.append(ids, 0).astype(np.uint32))  # padded: never a width-1 (literal) array
     cf = [to_jit(Float, coef[:, j]) for j in range(3)]
     lighting = lighting if isinstance(lighting, DeviceLighting) else DeviceLighting(lighting)
-    ids_dev = to_jit(UInt32, np.append(ids, 0).astype(np.uint32))  # padded: never a width-1 (literal) array
     count = dr.opaque(UInt32, k)
 
     def cond(i, r, g, b):
@@ -135,7 +137,7 @@ def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndar
                 + cf[1] * dr.gather(Float, light, base_v[1] + o + ch)
                 + cf[2] * dr.gather(Float, light, base_v[2] + o + ch))
 
-    if isinstance(rf_device, HalfWords) and light_ids is None and n_lights % 4 == 0:
+    if fast:
         # four lights at a time: their 12 halves are 3 whole 64-bit words (a row starts at a word), and the
         # lighting is laid out (V, K/4, 3, 4) so that each vertex's 4 values of one channel are 2 words
         UInt64 = mi.UInt64
