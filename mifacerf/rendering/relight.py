@@ -36,11 +36,18 @@ class HalfWords:
 
     def __init__(self, array: np.ndarray):
         mi = ensure_variant()
-        flat = np.ascontiguousarray(np.asarray(array, np.float16).reshape(-1))
+        flat = np.asarray(array, np.float16).reshape(-1)   # a view of a memory-mapped field: read once, below
         self.size = flat.size
-        if flat.size % 4:
-            flat = np.concatenate([flat, np.zeros(4 - flat.size % 4, np.float16)])
-        self.words = to_jit(mi.UInt64, flat.view(np.uint64))
+        n_words = -(-flat.size // 4)
+        # the halves copied once, straight into a 64-byte-aligned buffer of whole words (as jitarrays.to_jit
+        # hands Dr.Jit its arrays), not padded, made contiguous and aligned in three copies of the field
+        buf = np.empty(n_words * 8 + 64, np.uint8)
+        start = (-buf.ctypes.data) % 64
+        words = buf[start:start + n_words * 8].view(np.uint64)
+        halves = words.view(np.uint16)
+        halves[:flat.size] = flat.view(np.uint16)
+        halves[flat.size:] = 0
+        self.words = mi.UInt64(words)
 
 
 def to_device_words(array: np.ndarray) -> HalfWords:
