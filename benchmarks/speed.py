@@ -2,7 +2,8 @@
 next frame is drawn, so a loaded machine slows them alike (compare the ratios, not the seconds).
 
     python benchmarks/speed.py MODEL [--configs exact,sh4,pca8] [--sizes 256,1024] [--frames 5]
-                               [--sequence 120] [--cold] [--skips] [--warm] [--json OUT.json]
+                               [--sequence 120] [--drive TRACK --drive-frames 30] [--cold] [--skips] [--warm]
+                               [--json OUT.json]
 
 Per configuration and size: median seconds per frame over ``--frames`` fresh frames (random blends of
 two captured expressions, yaw ±25°, pitch ±6°, 4 spp, sky; ``mifacerf bench``'s frames) after a warm-up frame, the median of each
@@ -13,7 +14,13 @@ A frame's seconds include ``Face.target`` and ``Face.parts`` (the target mesh an
 blend), which no render stage counts.
 ``--sequence N``: an animation of N frames at the first size from one camera (the weights travel
 smoothly through four expressions, the head turns a few degrees): frames per second over all N,
-kernels compiled after the first frame. ``--skips``: each skip of the exact path on its own (time with
+kernels compiled after the first frame. ``--drive TRACK``: ``mifacerf drive`` itself (:func:`mifacerf.tracking.drive.drive`)
+on the first ``--drive-frames`` frames of a tracked performance at the first size, one environment
+(``--env``), PNG + EXR + mp4 written to a temporary folder, the model opened fresh (its fields are loaded
+during the run, once): frames per second over all frames and after the first, the mean render seconds
+drive.json records, kernels compiled after the first frame. A track's frames carry the §5 weights of its
+mesh (per vertex and region: a frame touches every expression, ~130 chunks on the draft model), so they
+cost several times a two-expression blend's. ``--skips``: each skip of the exact path on its own (time with
 and without, PSNR between the two). ``--cold``: a fresh process imports mifacerf, opens the model
 and renders one frame at the first size (seconds since the process started).
 The variant is ``$MIFACERF_VARIANT`` (``llvm_ad_rgb`` by default; ``cuda_ad_rgb`` on a GPU:
@@ -145,6 +152,45 @@ def sequence(face, config, n, size, env):
             "first_frame_s": times[0], "compiled_after_first": int(sum(compiled[1:]))}
 
 
+def drive_sequence(model, track, n, size, env):
+    """``mifacerf drive`` on the first ``n`` frames of ``track`` (a fresh model, one environment, a temporary
+    folder): fps over all frames and after the first (the frames' completion times, seen by an observer),
+    drive.json's render seconds per frame, kernels compiled after the first frame."""
+    import tempfile
+    from pathlib import Path
+
+    import drjit as dr
+
+    import mifacerf as mf
+    from mifacerf.tracking.drive import FrameObserver, drive
+
+    class Clock(FrameObserver):
+        def __init__(self):
+            self.done, self.compiled = [], []
+
+        def frame(self, f, rgba, plate, picked):
+            self.done.append(time.perf_counter())
+            self.compiled.append(compiled_kernels(dr.kernel_history())[1])
+
+    face = mf.load_model(model)
+    clock = Clock()
+    with tempfile.TemporaryDirectory() as tmp:
+        dr.kernel_history()
+        t0 = time.perf_counter()
+        out = drive(track, face, out=Path(tmp) / "drive", envs=(env,), frames=(0, n), size=size, progress=False,
+                    observer=clock)
+        total = time.perf_counter() - t0
+        meta = json.loads((out / "drive.json").read_text())
+    e = next(iter(meta["environments"].values()))
+    steps = np.diff([t0] + clock.done)
+    return {"track": str(track), "frames": len(steps), "size": size, "env": env, "seconds": total,
+            "fps": float(len(steps) / total), "first_frame_s": float(steps[0]),
+            "fps_after_first": float((len(steps) - 1) / steps[1:].sum()) if len(steps) > 1 else None,
+            "render_seconds_per_frame": e["render_seconds_per_frame"],
+            "write_seconds_per_frame": e["write_seconds_per_frame"],
+            "compiled_after_first": int(sum(clock.compiled[1:]))}
+
+
 def skips(face, n_frames, size, env, seed):
     """Each skip of the exact path measured in isolation, side by side: median seconds with and without it
     and the PSNR between the two images (inf: identical)."""
@@ -210,6 +256,8 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--sequence", type=int, default=0)
     ap.add_argument("--sequence-config", default="exact")
+    ap.add_argument("--drive", default=None, metavar="TRACK", help="time mifacerf drive on this tracked performance")
+    ap.add_argument("--drive-frames", type=int, default=30)
     ap.add_argument("--cold", action="store_true")
     ap.add_argument("--skips", action="store_true", help="measure each skip of the exact path in isolation")
     ap.add_argument("--warm", action="store_true",
@@ -259,6 +307,13 @@ def main(argv=None):
         print(f"sequence: {s['frames']} frames {s['size']}² ({s['config']}): {s['fps']:.1f} fps "
               f"({s['fps_after_first']:.1f} after the first), kernels compiled after the first frame: "
               f"{s['compiled_after_first']}", flush=True)
+    if a.drive:
+        report["drive"] = drive_sequence(a.model, a.drive, a.drive_frames, sizes[0], a.env)
+        d = report["drive"]
+        print(f"drive: {d['frames']} frames {d['size']}² ({d['env']}): {d['fps']:.2f} fps ({d['fps_after_first']:.2f} "
+              f"after the first, first {d['first_frame_s']:.1f} s); render {d['render_seconds_per_frame']:.3f} s, "
+              f"write {d['write_seconds_per_frame']:.3f} s per frame; kernels compiled after the first frame: "
+              f"{d['compiled_after_first']}", flush=True)
     report["load_after"] = os.getloadavg()
     print(f"load average before {report['load_before'][0]:.1f}, after {report['load_after'][0]:.1f}; "
           f"{report['cpus']} CPUs; variant {report['variant']}")
