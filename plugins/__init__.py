@@ -8,7 +8,9 @@ the renderer, scene files) and ``import mifacerf`` in a program that already imp
 * ``facerf`` (integrator): the exact environment-lit render of a face model (:mod:`.facerf_integrator`).
 * ``facerf_bsdf`` (BSDF): the image-based material for Mitsuba's own emitters and integrators
   (:mod:`.facerf_bsdf`).
+* ``facerf_direct`` (integrator): Mitsuba's direct illumination with a near-field shadow rule for the
+  material's skin (``facerf_bsdf`` ``near_occluders``; :mod:`.facerf_direct`).
 * ``facerf_face`` (shape): the face mesh with its eyes, teeth and mouth interior, from the model folder,
   posed by scene parameters (:mod:`.facerf_shape`).
 """
-from . import facerf_bsdf, facerf_integrator, facerf_shape  # noqa: F401  (register the three plugins)
+from . import facerf_bsdf, facerf_direct, facerf_integrator, facerf_shape  # noqa: F401  (register the plugins)

@@ -43,6 +43,12 @@ samples drawn from it.
      - integer — where inside each triangle the self-visibility is known: a barycentric grid of this order
        (default 3: 10 points per triangle, traced from the triangle's surface as the shadow rays are;
        0: at the vertices only, interpolated — the rule before 2026-12-02)
+   * - near_occluders
+     - float — metres (default 0): the captured self-visibility is traced with the near-field rule of the
+       ``facerf_direct`` integrator, whose shadow rays pass through the skin within this distance of their
+       origin (the captured fields hold that self-shadowing already; Mitsuba's own integrators have no such
+       rule: use it with ``facerf_direct`` only). 0.015 brings the sides of the draft's nose from 13 % dark to
+       2 % (docs/rendering.md, "Near-field shadow rule")
    * - sampling
      - string — ``reflectance`` (default: half the samples by the fields' response per light) or ``cosine``
    * - parts
@@ -115,9 +121,13 @@ class FaceRFBSDF(mi.BSDF):
                 raise ValueError(f"facerf_bsdf: parameter 'visibility_rule': {props['visibility_rule']!r} is not "
                                  f"one of {', '.join(VISIBILITY_RULES)}")
             self.fields["visibility_rule"] = props["visibility_rule"]
-        for key, cast in (("max_slots", int), ("depth_tolerance", float), ("visibility_grid", int)):
+        for key, cast in (("max_slots", int), ("depth_tolerance", float), ("visibility_grid", int),
+                          ("near_occluders", float)):
             if key in props:
                 self.fields[key] = cast(props[key])
+        if not self.fields.get("near_occluders", 0.0) >= 0:
+            raise ValueError(f"facerf_bsdf: parameter 'near_occluders': {self.fields['near_occluders']} m; "
+                             "give a distance >= 0 (0: no near-field rule)")
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
 

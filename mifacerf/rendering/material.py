@@ -21,7 +21,8 @@ light-stage rule (:class:`.light_interp.LightInterpolator`, named as the exact p
 ``voronoi``, the default — the nearest light, so that an environment is integrated as the exact path
 does — or ``hat``, barycentric between the three lights round the direction), divided by the source's captured
 self-visibility of that light at the hit (:func:`.self_visibility.triangle_visibility`, a grid inside each
-triangle; ``visibility_grid=0``: the per-vertex values interpolated). The value is
+triangle; ``visibility_grid=0``: the per-vertex values interpolated; ``near_occluders``: traced with the
+near-field rule of the ``facerf_direct`` integrator's shadow rays). The value is
 radiance per unit irradiance — Mitsuba's "BSDF × cosine". Per vertex at most
 ``max_slots`` source expressions (the largest weights) are kept.
 
@@ -159,7 +160,7 @@ class MaterialState:
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
                  rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell",
-                 visibility_grid: int = GRID_ORDER):
+                 visibility_grid: int = GRID_ORDER, near_occluders: float = 0.0):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -192,6 +193,12 @@ class MaterialState:
         if self.visibility_grid < 0:
             raise ValueError(f"visibility_grid must be >= 0 (got {visibility_grid})")
         self._vis_sources: list[int] = []
+        # metres: the skin within this distance of a hit does not shadow it (facerf_direct's shadow rays; 0: Mitsuba's)
+        self.near_occluders = float(near_occluders)
+        if not self.near_occluders >= 0:
+            raise ValueError(f"near_occluders must be >= 0 metres (got {near_occluders})")
+        if self.near_occluders > 0 and self_visibility and not self.visibility_grid:
+            raise ValueError("near_occluders needs the triangle grid of self-visibility (visibility_grid > 0)")
         if self_visibility and not self.visibility_grid:   # per vertex, interpolated (before 2026-12-02)
             from .self_visibility import visibility
 
@@ -280,7 +287,8 @@ class MaterialState:
         from .self_visibility import source_triangle_visibility
 
         mi, model = self.mi, self.model
-        grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid) for s in sources]
+        grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid, self.near_occluders)
+                 for s in sources]
         base = np.zeros(len(model.expressions), np.uint32)
         for k, s in enumerate(sources):
             base[s] = k * self.n_triangles

@@ -164,10 +164,13 @@ def grid_barycentrics(order: int = GRID_ORDER) -> np.ndarray:
     return (1 - GRID_INSET) * b + GRID_INSET / 3
 
 
-def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: int = 1 << 21) -> np.ndarray:
+def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: int = 1 << 21,
+               near: float = 0.0) -> np.ndarray:
     """(N, D) bool: a ray from each point towards each direction escapes the mesh. The origin is offset along
     the point's (geometric) normal to the side the ray leaves by, as Mitsuba spawns its shadow rays, so a
-    direction below the triangle's plane is blocked by the surface itself (as under Mitsuba's integrators)."""
+    direction below the triangle's plane is blocked by the surface itself (as under Mitsuba's integrators).
+    ``near`` > 0: the mesh's own surface closer than ``near`` (metres, straight-line distance from the origin)
+    does not block — the rule of ``facerf_direct``'s shadow rays (:func:`near_free`)."""
     mi, scene, V, F = _mesh_scene(vertices, triangles)
     scale = float(np.linalg.norm(V.max(0) - V.min(0))) or 1.0
     eps = 1e-4 * scale
@@ -180,16 +183,52 @@ def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: in
         side[side == 0] = 1
         oo = (o[:, None, :] + side[..., None] * n[:, None, :] * eps).reshape(-1, 3).astype(np.float32)
         dd = np.broadcast_to(D[None], (len(o), len(D), 3)).reshape(-1, 3).astype(np.float32)
+        if near > 0:
+            out[a:a + step] = near_free(mi, scene, oo, dd, near).reshape(len(o), len(D))
+            continue
         hit = scene.ray_test(mi.Ray3f(mi.Point3f(oo.T), mi.Vector3f(dd.T)))
         out[a:a + step] = ~np.asarray(hit, bool).reshape(len(o), len(D))
     return out
 
 
+#: the most surfaces a near-rule ray passes through (:func:`near_free`; ``facerf_direct`` uses the same bound)
+NEAR_PASSES = 6
+
+
+def near_free(mi, scene, origins, directions, near: float) -> np.ndarray:
+    """(N,) bool: rays (float32 (N, 3) origins and unit directions) that meet no surface of ``scene`` farther
+    than ``near`` from their origin — the surfaces within ``near`` are passed through (at most
+    :data:`NEAR_PASSES` of them; a ray still inside that band after as many counts as blocked)."""
+    start = np.asarray(origins, np.float64)
+    D = np.asarray(directions, np.float64)
+    cur = start.copy()
+    free = np.zeros(len(start), bool)
+    todo = np.ones(len(start), bool)
+    for _ in range(NEAR_PASSES):
+        idx = np.nonzero(todo)[0]
+        if not len(idx):
+            break
+        hit = scene.ray_intersect(mi.Ray3f(mi.Point3f(cur[idx].T.astype(np.float32)),
+                                           mi.Vector3f(D[idx].T.astype(np.float32))))
+        valid, t = np.asarray(hit.is_valid(), bool), np.asarray(hit.t, np.float64)
+        at = cur[idx] + D[idx] * np.where(valid, t, 0.0)[:, None]
+        inside = valid & (np.linalg.norm(at - start[idx], axis=1) <= near)
+        free[idx[~valid]] = True
+        todo[idx[~inside]] = False
+        cur[idx[inside]] = at[inside] + D[idx[inside]] * NEAR_STEP
+    return free
+
+
+#: metres a near-rule ray moves past a surface it passes through before it is traced on
+NEAR_STEP = 1e-5
+
+
 def triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
-                        n: int = CELL_SAMPLES) -> np.ndarray:
+                        n: int = CELL_SAMPLES, near: float = 0.0) -> np.ndarray:
     """(F, (order+1)², L) float32: the self-visibility of each light (``rule`` as :func:`visibility`) at the
     grid points of every triangle (:func:`grid_barycentrics`), traced from the point on the triangle with its
-    geometric normal — what the integrator's shadow rays from a hit there let through.
+    geometric normal — what the integrator's shadow rays from a hit there let through (``near`` > 0: rays that
+    pass through the mesh's surface within ``near`` metres, as ``facerf_direct``'s do, :func:`_free_from`).
 
     The per-vertex values (:func:`cell_visibility`) interpolated across a triangle of a coarse template miss
     what happens inside it: in a crease (under the lower lip) the vertices sit in the fold, their cells
@@ -209,10 +248,10 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
     Nn = np.repeat(nrm[:, None], valid.sum(), 1)
     if rule == "ray":
-        vis = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld).astype(np.float32)
+        vis = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld, near=near).astype(np.float32)
     else:
         samples, cell = cell_directions(Ld, n)
-        free = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), samples).astype(np.float32)
+        free = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), samples, near=near).astype(np.float32)
         count = np.bincount(cell, minlength=len(Ld)).astype(np.float64)
         onehot = np.zeros((len(samples), len(Ld)), np.float32)
         onehot[np.arange(len(samples)), cell] = 1
@@ -220,18 +259,20 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
         empty = count == 0
         vis[:, ~empty] /= count[~empty]
         if empty.any():
-            vis[:, empty] = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld[empty]).astype(np.float32)
+            vis[:, empty] = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld[empty],
+                                       near=near).astype(np.float32)
     out = np.ones((len(F), len(B), len(Ld)), np.float32)
     out[:, valid] = vis.reshape(len(F), valid.sum(), len(Ld))
     return out
 
 
-def source_triangle_visibility(model, source: int, rule: str = "cell", order: int = GRID_ORDER) -> np.ndarray:
+def source_triangle_visibility(model, source: int, rule: str = "cell", order: int = GRID_ORDER,
+                               near: float = 0.0) -> np.ndarray:
     """:func:`triangle_visibility` of source expression ``source`` of ``model`` against its registered mesh
-    (cached in memory per model folder, source, rule and order; computed when a material first uses it)."""
-    key = (_key(model), "grid", int(source), rule, int(order))
+    (cached in memory per model folder, source, rule, order and ``near``; computed when a material first uses it)."""
+    key = (_key(model), "grid", int(source), rule, int(order), float(near))
     with _LOCK:
         if key not in _CACHE:
             _CACHE[key] = triangle_visibility(model.vertices[source], model.triangles, model.light_directions,
-                                              rule, order)
+                                              rule, order, near=near)
         return _CACHE[key]
