@@ -90,3 +90,33 @@ def test_traverse_loop_compiles_nothing_after_the_first_frame(toy_model, mi, ker
         assert np.isfinite(np.asarray(img)).all()
         counts.append(compiled(kernel_history()))
     assert counts[1:] == [0] * 3, counts
+
+
+def test_a_sequence_loads_each_field_once(toy_model):
+    """A sequence driven by meshes (the §5 weights, as ``mifacerf drive`` renders a track) loads each field it
+    needs onto the device once for the whole sequence: the frames after the first upload nothing they had
+    before, and a field's device form is made once however many frames read it (issue 19 item 3)."""
+    import dataclasses
+
+    import mifacerf as mf
+    from mifacerf.tracking.drive import FrameContext, render_frame
+
+    face = mf.load_model(toy_model)
+    r = face.renderer
+    loads = []
+    load = r.compression.load
+
+    def counting(model, s, c, rank, lights):
+        loads.append((s, c))
+        return load(model, s, c, rank, lights)
+
+    r.compression = dataclasses.replace(r.compression, load=counting)
+    env = E.generated("sky", 32)
+    ctx = FrameContext(face, env, face.camera((5, 0), size=40), spp=2)
+    m = face.model
+    for k, w in enumerate(fresh(4)):
+        mesh = w * m.vertices[0] + (1 - w) * m.vertices[1]
+        target, W = face.target(mesh=mesh)
+        render_frame(ctx, (k, target, W, None))
+    assert loads, "no field was loaded"
+    assert len(loads) == len(set(loads)), loads
