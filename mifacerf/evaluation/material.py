@@ -16,6 +16,7 @@ Run: ``python -m mifacerf.evaluation.material MODEL [--size 48] [--spp 256] [--e
 ``--hat SYNTH``: the shadow of a hat on the face against the path-traced truth (:func:`hat_shadow`);
 ``--regions [--integrators unshadowed]``: where the error lies, per pixel class (:func:`regions`);
 ``--emitters``: every kind of emitter against its reference (:func:`emitters`);
+``--integrators facerf_direct --near-occluders 0.015``: the near-field shadow rule (``facerf_direct``);
 ``--animation [--integrators facerf,direct] [--size 32]``: an animation loop through ``mi.traverse``
 (expression and pose per frame), kernels compiled / launched and seconds per frame (:func:`animation`).
 """
@@ -619,6 +620,8 @@ def main(argv=None) -> None:
                     "(default) or ray (facerf_bsdf visibility_rule)")
     ap.add_argument("--visibility-grid", type=int, default=None, help="the material's self-visibility grid order "
                     "inside each triangle (facerf_bsdf visibility_grid; default 3, 0: per vertex)")
+    ap.add_argument("--near-occluders", type=float, default=None, help="metres: the material's near-field shadow "
+                    "rule (facerf_bsdf near_occluders), for --integrators facerf_direct")
     ap.add_argument("--directional", action="store_true", help="the closed-form check instead: a directional "
                     "emitter along each of the most frontal light-stage lights (directional_oracle)")
     ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
@@ -638,6 +641,8 @@ def main(argv=None) -> None:
         bsdf["visibility_rule"] = a.visibility_rule
     if a.visibility_grid is not None:
         bsdf["visibility_grid"] = a.visibility_grid
+    if a.near_occluders is not None:
+        bsdf["near_occluders"] = a.near_occluders
     bsdf = bsdf or None
     if a.regions:
         out = regions(a.model, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0], bsdf=bsdf)
