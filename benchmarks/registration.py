@@ -4,8 +4,9 @@
 
 Each repeat registers the capture from scratch into a new temporary folder (the capture's own
 ``registration/`` is not touched; its proxies cache ``CAPTURE/cache`` is reused or filled), then deletes
-it. Prints, per repeat, the wall and CPU seconds (CPU: this process and its threads, so a thread pool shows as CPU > wall on idle cores)
-and the machine's load average before and after: on a shared machine compare runs side by side.
+it. Prints, per repeat, the wall and CPU seconds (CPU: this process and its threads, so a thread pool
+shows as CPU > wall on idle cores) and the machine's load average before and after: on a shared machine
+compare runs side by side.
 To compare two versions of the code, run this once per version in alternation (e.g.
 ``PYTHONPATH=<other checkout> python benchmarks/registration.py ...``).
 """
