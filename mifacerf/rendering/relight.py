@@ -36,8 +36,15 @@ class HalfWords:
 
     def __init__(self, array: np.ndarray):
         mi = ensure_variant()
-        flat = np.asarray(array, np.float16).reshape(-1)   # a view of a memory-mapped field: read once, below
+        flat = np.asarray(array, np.float16).reshape(-1)   # a view of a memory-mapped field
         self.size = flat.size
+        if flat.size % 4 == 0 and flat.flags.c_contiguous and flat.ctypes.data % 64 == 0:
+            # whole words already, 64-byte aligned (a .npy field's data starts at a multiple of 64 in a
+            # page-aligned map): Dr.Jit reads them where they are (it maps NumPy memory, no copy), so a
+            # field costs no memory of its own beyond the page cache, and no copy; kept referenced here
+            self._halves = flat
+            self.words = mi.UInt64(flat.view(np.uint64))
+            return
         n_words = -(-flat.size // 4)
         # the halves copied once, straight into a 64-byte-aligned buffer of whole words (as jitarrays.to_jit
         # hands Dr.Jit its arrays), not padded, made contiguous and aligned in three copies of the field
