@@ -20,7 +20,8 @@ from ..rendering.frame import (MIN_VIEW_COS, OBLIQUE_RATIO, OUTLINE_WEIGHT, faci
 def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int = 0) -> np.ndarray:
     """(H, W, 4) RGBA of the skin (no eyes/teeth pass), computed densely."""
     model = renderer.model
-    plan = plan_frame(model, target, facing_weights(weights, target, model.triangles, camera.centre), camera)
+    traced = renderer._traced(target)     # the renderer's traced target (rendering.frame.ChordOffset)
+    plan = plan_frame(model, target, facing_weights(weights, traced, model.triangles, camera.centre), camera)
     basis = renderer.light_basis(env)
     T, S, C = model.n_vertices, len(model.expressions), len(model.cameras)
     # per-vertex rotated lighting for every source (identity where the weight is 0): the dense way
@@ -34,10 +35,13 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
     for ch in plan.chunks:
         a[ch.s, ch.c] = ch.weights
         fb[ch.s, ch.c] = ch.fallback
-    renderer._scene.set_vertices(plan.target)
-    hits, _ = renderer._scene.render_hits(camera, spp, seed)
+    renderer._scene.set_vertices(traced)
+    hits, uv = renderer._scene.render_hits(camera, spp, seed)
     idx = np.flatnonzero(hits.valid)
     tri, bary = hits.tri[idx], hits.bary[idx]
+    if renderer._traced.moves:       # the untraced surface point each ray meets, as the renderer shades
+        o, d = camera.pixel_rays(uv[idx])
+        tri, bary = renderer._traced.barycentrics(o, d, plan.target, tri)
     tv = model.triangles[tri]
     cos_r = view_cosine_np(camera, np.einsum("nk,nkd->nd", bary, plan.target[tv]), plan.target[tv])
     # accumulated colour and weight: primary tier seen, fallback tier seen, fallback without the

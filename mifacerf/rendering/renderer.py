@@ -31,7 +31,7 @@ from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
 from ..variant import ensure_plugins, ensure_variant
 from .chunks import FramePlan, plan_frame
-from .frame import LitFrame, facing_weights, resolve_pixels
+from .frame import CHORD_OFFSET, ChordOffset, LitFrame, facing_weights, resolve_pixels
 from .lighting import RotatedLightBasis
 from .relight import DeviceLighting
 from ..geometry.meshscene import MeshScene
@@ -138,10 +138,17 @@ class Renderer:
         meshes = part_meshes(model.template) if model.references else {}
         self._combined = CombinedScene(neutral, model.triangles, meshes) if meshes else None
         self._margins = margin_ids(model.template)
+        # the traced target: the face's vertices moved out by the chords' sag (frame.ChordOffset)
+        # on a whole-head template (one with extensions: a coarse polygon of a smooth subject); a face-only
+        # template traces its registered mesh as it is
+        exts = model.template.get("extensions") or {}
+        ext = [v for e in exts.values() for v in e.get("vertices", [])]
+        self._traced = ChordOffset(model.triangles, model.n_vertices, fixed=ext, k=CHORD_OFFSET if exts else 0.0)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}
         self._texel_maps: dict[tuple[int, int], tuple] = {}
+        self._part_views: dict[tuple[str, int, str], dict | None] = {}
 
     # -------------------------------------------------------------- lighting
     def light_basis(self, env: Environment) -> RotatedLightBasis:
@@ -267,21 +274,11 @@ class Renderer:
             idx, w = sampler.weights((R_delta @ look)[None])
             views = []
             for c, wc in zip(idx[0], w[0]):
-                pf = model.part_field(ref, int(c)) if wc > 0 else None
-                if pf is None:
-                    continue
-                sel = np.flatnonzero(pf["part"] == PARTS.index(p))
-                if not len(sel):
+                view = self._part_view(ref, int(c), p) if wc > 0 else None
+                if view is None:
                     continue
                 cam = model.cameras[int(c)]
-                index = np.full((cam.height, cam.width), -1, np.int64)
-                depth = np.full((cam.height, cam.width), np.inf, np.float32)
-                px = pf["pixels"][sel]
-                index[px[:, 0], px[:, 1]] = np.arange(len(sel))
-                depth[px[:, 0], px[:, 1]] = pf["depth"][sel]
-                rf = np.asarray(pf["rf"][sel])
-                views.append((int(c), float(wc), {"index": index, "depth": depth,
-                                                  "rf": rf if self.lights is None else rf[:, self.lights]}))
+                views.append((int(c), float(wc), view))
                 if (ref, cam.name + ":parts") not in stats.fields_loaded:
                     stats.fields_loaded.append((ref, cam.name + ":parts"))
             if views:
@@ -294,6 +291,29 @@ class Renderer:
             return _ev().Color3f(*basis._lookup(d))
 
         return PartFrame(model.cameras, len(self.light_directions), info, env_lookup)
+
+    def _part_view(self, ref: str, c: int, part: str):
+        """Part ``part``'s texels in camera ``c`` of expression ``ref`` as :class:`.parts.PartFrame` reads them
+        ({index (H, W) rows or −1, depth (H, W), rf (N, L, 3)}; None where the camera has none), made once
+        (read-only: a frame reads them, never writes)."""
+        key = (ref, c, part)
+        if key not in self._part_views:
+            view = None
+            pf = self.model.part_field(ref, c)
+            sel = np.flatnonzero(pf["part"] == PARTS.index(part)) if pf is not None else ()
+            if len(sel):
+                cam = self.model.cameras[c]
+                index = np.full((cam.height, cam.width), -1, np.int64)
+                depth = np.full((cam.height, cam.width), np.inf, np.float32)
+                px = pf["pixels"][sel]
+                index[px[:, 0], px[:, 1]] = np.arange(len(sel))
+                depth[px[:, 0], px[:, 1]] = pf["depth"][sel]
+                rf = np.asarray(pf["rf"][sel])
+                view = {"index": index, "depth": depth, "rf": rf if self.lights is None else rf[:, self.lights]}
+                for a in view.values():
+                    a.flags.writeable = False
+            self._part_views[key] = view
+        return self._part_views[key]
 
     def _view_sampler(self):
         if not hasattr(self, "_views"):
@@ -335,8 +355,9 @@ class Renderer:
         if not view_checks(target, camera, model.cameras, stats):
             return np.zeros((camera.height, camera.width, 4), np.float32)
         t0 = time.perf_counter()
+        traced = self._traced(target if plan is None else plan.target)   # alpha and hits (frame.ChordOffset)
         if plan is None:   # only the vertices of triangles facing the camera: every hit is on one (frame.py)
-            W = facing_weights(expression_weights, target, model.triangles, camera.centre)
+            W = facing_weights(expression_weights, traced, model.triangles, camera.centre)
             plan = plan_frame(model, target, W, camera, frame)
         stats.add_time("plan", time.perf_counter() - t0)
         lit = self.light_frame(plan, env, stats)
@@ -345,18 +366,21 @@ class Renderer:
         t0 = time.perf_counter()
         use_parts = bool(parts) and self._combined is not None
         if use_parts:
-            self._combined.set_pose(plan.target, parts)
+            self._combined.set_pose(traced, parts)
             scene = self._combined.scene
         else:
-            self._scene.set_vertices(plan.target)
+            self._scene.set_vertices(traced)
             scene = self._scene
         uv, origin, dirs = self._camera_rays(camera, spp, seed)
         hits = scene.trace(origin, dirs, cull_back=True)   # as MeshScene.render_hits, the rays kept
         if use_parts:
-            self._parts_inside_skin(hits, uv, camera, plan.target, dirs)
+            self._parts_inside_skin(hits, uv, camera, traced, dirs)
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
         on_skin = hits.tri[idx] < n_skin_tri
+        if self._traced.moves:   # shade the untraced surface point each ray meets (frame.ray_barycentrics)
+            sk = idx[on_skin]
+            hits.tri[sk], hits.bary[sk] = self._traced.barycentrics(origin, dirs[sk], plan.target, hits.tri[sk])
         stats.add_time("trace", time.perf_counter() - t0)
 
         t0 = time.perf_counter()

@@ -62,9 +62,11 @@ def test_alpha_is_the_exact_coverage_of_the_outline(toy_model):
     W = np.zeros((model.n_vertices, len(model.expressions)))
     W[:, model.expression_index("neutral")] = 1.0
     stats = RenderStats()
+    renderer = Renderer(model)
     with pytest.warns(RenderWarning, match="from the nearest capture camera"):  # 111 deg: beyond the fields
-        img = Renderer(model).render(model.vertices[0], W, cam, E.generated("sky", 32), spp=64, stats=stats)
-    uv, z = cam.project(model.vertices[0])
+        img = renderer.render(model.vertices[0], W, cam, E.generated("sky", 32), spp=64, stats=stats)
+    traced = renderer._traced(model.vertices[0])     # the traced target (frame.ChordOffset; the toy's, unmoved)
+    uv, z = cam.project(traced)
     assert (z > 0).all()
     outline = uv[ConvexHull(uv).vertices]
     exact = exact_coverage(outline, cam.height, cam.width)
