@@ -36,12 +36,9 @@ def dense_render(renderer, target, weights, camera, env, spp: int = 1, seed: int
         a[ch.s, ch.c] = ch.weights
         fb[ch.s, ch.c] = ch.fallback
     renderer._scene.set_vertices(traced)
-    hits, uv = renderer._scene.render_hits(camera, spp, seed)
+    hits, _ = renderer._scene.render_hits(camera, spp, seed)
     idx = np.flatnonzero(hits.valid)
     tri, bary = hits.tri[idx], hits.bary[idx]
-    if renderer._traced.moves:       # the untraced surface point each ray meets, as the renderer shades
-        o, d = camera.pixel_rays(uv[idx])
-        tri, bary = renderer._traced.barycentrics(o, d, plan.target, tri)
     tv = model.triangles[tri]
     cos_r = view_cosine_np(camera, np.einsum("nk,nkd->nd", bary, plan.target[tv]), plan.target[tv])
     # accumulated colour and weight: primary tier seen, fallback tier seen, fallback without the

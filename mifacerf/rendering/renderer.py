@@ -378,9 +378,6 @@ class Renderer:
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
         on_skin = hits.tri[idx] < n_skin_tri
-        if self._traced.moves:   # shade the untraced surface point each ray meets (frame.ray_barycentrics)
-            sk = idx[on_skin]
-            hits.tri[sk], hits.bary[sk] = self._traced.barycentrics(origin, dirs[sk], plan.target, hits.tri[sk])
         stats.add_time("trace", time.perf_counter() - t0)
 
         t0 = time.perf_counter()
