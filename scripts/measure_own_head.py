@@ -1,7 +1,8 @@
 """Measure a head through the pipeline (docs/your-own-head.md, "Measured"): per expression the share of
 fiducials registered, then for captured expressions rendered from the model in capture cameras against
 the dot-free path-traced truth: face-mask PSNR, composite PSNR (over a grey plate), the share of the
-visible templated skin the model covers, eye and teeth pixels in the truth and the render. Writes
+visible templated skin the model covers, eye and teeth pixels in the truth and the render, and for a
+mesh subject the ears' pixels in the truth and how many the model covers. Writes
 OUT_JSON and, beside it, render | truth | uncovered PNGs to look at::
 
     python scripts/measure_own_head.py SYNTH_OUT MODEL OUT_JSON [EXPRESSION ...] [--env sky] [--spp-truth 64]
@@ -29,7 +30,7 @@ def main() -> None:
 
     import mifacerf as mf
     from mifacerf.environment import resolve
-    from mifacerf.evaluation.masks import classify_pixels, face_mask
+    from mifacerf.evaluation.masks import classify_pixels, face_mask, triangle_mask
     from mifacerf.evaluation.metrics import composite_psnr, psnr
     from mifacerf.imageio import to_srgb8, write_png
     from mifacerf.synthetic.scene import PART_IDS
@@ -46,6 +47,7 @@ def main() -> None:
     env = resolve(a.env)
     names = a.expressions or list(tr.expressions)
     plate = np.full((1, 1, 3), 0.18)
+    ears = _ear_triangles(tr.subject)
     for name in names:
         for ci in [int(c) for c in a.cameras.split(",")]:
             cam = face.model.cameras[ci]
@@ -71,6 +73,10 @@ def main() -> None:
                    "eye_px_rendered": int((img[..., 3] > 0.5)[np.isin(cl["part"], [PART_IDS["eye_left"],
                                                                                  PART_IDS["eye_right"]]).all(axis=2)].sum()),
                    "render_s": t_render, "truth_s": t_truth}
+            if ears is not None:       # the ears' skin (mesh_template.ear_zones) in the truth, and the share the model covers
+                em = triangle_mask(cl, ears)
+                row["ear_px_truth"] = int(em.sum())
+                row["ear_px_covered"] = int((em & (img[..., 3] > 0.5)).sum())
             result["renders"].append(row)
             print(json.dumps(row))
             miss = np.zeros(img.shape[:2] + (3,), np.float32)
@@ -79,6 +85,17 @@ def main() -> None:
                                     miss], axis=1)
             write_png(Path(a.out).with_name(f"{Path(a.out).stem}_{name}_{cam.name}.png"), strip)
     Path(a.out).write_text(json.dumps(result, indent=1))
+
+
+def _ear_triangles(subject):
+    """(F,) bool the skin triangles of the ears of a mesh subject (None: no ear marks, or not a mesh subject)."""
+    from mifacerf.synthetic.mesh_template import ear_zones
+
+    t = getattr(subject, "template", None)
+    if getattr(subject, "kind", None) != "mesh" or t is None or not {"ear_L", "ear_R"} & set(t.names):
+        return None
+    marks = [t.neutral[t.names.index(n)] for n in ("ear_L", "ear_R") if n in t.names]
+    return ear_zones(subject.skin_rest, subject.skin_faces, marks)
 
 
 if __name__ == "__main__":
