@@ -517,7 +517,9 @@ def _lit_images(chunks: list[dict], lit_texels: list[tuple]):
     dr.eval(images, depths)
     off = 0
     for size, (lit, pixels, coverage, depth) in zip(sizes, lit_texels):
-        rgb = getattr(lit, "device", None)
+        # a launched kernel's reader keeps its colours on the device (NumPy arrays also have a
+        # ``device`` attribute since NumPy 2: the string "cpu", so only a reader is asked)
+        rgb = getattr(lit, "device", None) if callable(lit) else None
         if rgb is None:
             values = np.asarray(lit() if callable(lit) else lit, np.float32)
             rgb = [to_jit(Float, values[:, k]) for k in range(3)]
