@@ -40,7 +40,7 @@ def check_field(field: np.ndarray, expression: str, camera: str, path_of=None, l
         hi, lo = flat.max(axis=1), flat.min(axis=1)
     bad_finite = ~(np.isfinite(hi) & np.isfinite(lo))
     peak = np.maximum(hi, PEAK_FLOOR)
-    low = lo.copy()
+    low = lo
     if bad_finite.any():   # the finite values' peak and low of those images only
         rows = np.flatnonzero(bad_finite)
         finite = np.isfinite(flat[rows])
