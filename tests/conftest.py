@@ -16,7 +16,36 @@ os.environ.setdefault("MIFACERF_WORKERS", "1")
 SLOW_FIXTURES = {"tiny", "built_root", "toy_capture", "world"}
 
 
+def _xdist_groups(items) -> dict:
+    """{test: group}: tests that share a session-scoped fixture (directly or through another fixture) are one
+    group — the components of "shares a session fixture" — so that under ``pytest -n`` (pytest-xdist, ``--dist
+    loadgroup``) each such fixture is built by one worker only; a test with none is its own module's group."""
+    parent: dict = {}
+
+    def find(x):
+        while parent.setdefault(x, x) != x:
+            parent[x] = x = parent[parent[x]]
+        return x
+
+    uses = {}
+    for item in items:
+        defs = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {}) or {}
+        ids = [f"{d[-1].baseid}::{name}" for name, d in defs.items()
+               if d and d[-1].scope == "session" and name not in CHEAP_SESSION_FIXTURES]
+        uses[item] = ids or [item.nodeid.split("::")[0]]
+        for other in uses[item][1:]:
+            parent[find(other)] = find(uses[item][0])
+    return {item: find(ids[0]) for item, ids in uses.items()}
+
+
+# Session fixtures that cost nothing to make twice (they do not tie their tests to one worker).
+CHEAP_SESSION_FIXTURES = {"mi", "tmp_path_factory", "worker_id", "testrun_uid"}
+
+
 def pytest_collection_modifyitems(config, items):
+    if config.pluginmanager.hasplugin("xdist"):
+        for item, group in _xdist_groups(items).items():
+            item.add_marker(pytest.mark.xdist_group(group))
     unmarked = [item.nodeid for item in items if SLOW_FIXTURES & set(getattr(item, "fixturenames", ()))
                 and item.get_closest_marker("slow") is None]
     if unmarked:
