@@ -57,7 +57,7 @@ if [ ! -x .venv/bin/python ]; then
   say "creating the virtual environment .venv"
   "$PY" -m venv .venv || die "could not create .venv (is python3-venv installed?)"
 fi
-if ! .venv/bin/python -c 'import mifacerf, mitsuba, drjit, cv2, OpenEXR, distributed, pytest, hypothesis, xdist' >/dev/null 2>&1 \
+if ! .venv/bin/python -c 'import mifacerf, mitsuba, drjit, cv2, OpenEXR, distributed, pytest, hypothesis, xdist; assert tuple(map(int, pytest.__version__.split(".")[:2])) < (9, 2)' >/dev/null 2>&1 \
    || [ pyproject.toml -nt .venv/.mifacerf-installed ]; then
   say "installing mifacerf and its dependencies into .venv (first time: a few minutes)"
   .venv/bin/python -m pip install -q --upgrade pip >.venv/pip.log 2>&1 || true

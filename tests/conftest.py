@@ -42,6 +42,7 @@ def _xdist_groups(items) -> dict:
 CHEAP_SESSION_FIXTURES = {"mi", "tmp_path_factory", "worker_id", "testrun_uid"}
 
 
+@pytest.hookimpl(tryfirst=True)      # the groups are marked before xdist's worker reads them
 def pytest_collection_modifyitems(config, items):
     if config.pluginmanager.hasplugin("xdist"):
         for item, group in _xdist_groups(items).items():
@@ -63,3 +64,16 @@ def mi():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+def pytest_collection_finish(session):
+    """On an xdist worker under ``--dist loadgroup``: the groups took effect (xdist marks them by suffixing the
+    node ids with ``@group``; with pytest 9.2 that silently stopped working, pytest-dev/pytest-xdist#1386, and
+    every worker built every fixture) — else a usage error rather than a silently slower suite."""
+    if os.environ.get("PYTEST_XDIST_WORKER") and session.config.getvalue("loadgroup") and session.items:
+        if "@" not in session.items[0].nodeid:
+            import xdist
+
+            raise pytest.UsageError(f"pytest-xdist {xdist.__version__} does not group the tests under pytest "
+                                    f"{pytest.__version__} (pytest-dev/pytest-xdist#1386): install pytest<9.2 "
+                                    "(pyproject.toml's test extra pins it) or run with -n 0")
