@@ -16,6 +16,10 @@ os.environ.setdefault("MIFACERF_WORKERS", "1")
 SLOW_FIXTURES = {"tiny", "built_root", "toy_capture", "world"}
 
 
+# Session fixtures that cost nothing to make twice (they do not tie their tests to one worker).
+CHEAP_SESSION_FIXTURES = {"mi", "tmp_path_factory", "worker_id", "testrun_uid"}
+
+
 def _xdist_groups(items) -> dict:
     """{test: group}: tests that share a session-scoped fixture (directly or through another fixture) are one
     group — the components of "shares a session fixture" — so that under ``pytest -n`` (pytest-xdist, ``--dist
@@ -36,10 +40,6 @@ def _xdist_groups(items) -> dict:
         for other in uses[item][1:]:
             parent[find(other)] = find(uses[item][0])
     return {item: find(ids[0]) for item, ids in uses.items()}
-
-
-# Session fixtures that cost nothing to make twice (they do not tie their tests to one worker).
-CHEAP_SESSION_FIXTURES = {"mi", "tmp_path_factory", "worker_id", "testrun_uid"}
 
 
 @pytest.hookimpl(tryfirst=True)      # the groups are marked before xdist's worker reads them
