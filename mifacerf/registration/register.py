@@ -14,6 +14,8 @@ folder (manifest, images, ``hand/``) and writes a registration folder
    registered expression (per point, distance-weighted deformation metric), then the
    progressive snap-to with visibility ray-traced on the current estimate, the consensus pass
    (:mod:`.consensus`) and, for fiducials one view alone shows, the single-view snap (:mod:`.single_view`);
+   then, for the fiducials still left, one more round from starts the registered ones' displacement
+   gives, carried over the template mesh (:meth:`Registrar.refit_pass`);
 5. **head pose, teeth, eyes** (:mod:`.eyes_teeth`), **lips and eyelids** relaxed onto the
    rotoscoped curves (:mod:`.contours`); the template's **extensions** (scalp, ears, neck: no
    fiducials) placed rigidly with the head or driven by the nearest registered fiducials
@@ -303,8 +305,13 @@ class Registrar:
         known2 = dict(known)
         known2.update({int(v): X[v] for v in anchors})
         sub: dict = {}
-        X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub)
+        X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub, targets=rest)
         new = rest[snapped2[rest]]
+        if new.size:   # one image dot, one fiducial: a new one on a registered one's dot is left
+            from scipy.spatial import cKDTree
+
+            d, _ = cKDTree(X[anchors]).query(X2[new])
+            new = new[d > max(self.tpl.dot_radius, 0.5 * self.fp)]
         X[new] = X2[new]
         snapped[new] = True
         sv = np.intersect1d(np.asarray(sub.get("single_view_dots", []), np.int64), new)
@@ -314,15 +321,20 @@ class Registrar:
         return new
 
     def _snap_round(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float,
-                    report: dict) -> tuple:
+                    report: dict, targets: np.ndarray | None = None) -> tuple:
+        """One round of snaps (progressive, consensus, polish, single view) of the fiducials ``targets``
+        (default all) from ``pred``; ``known`` points are fixed (coarse points; in a refit round, the
+        registered fiducials, not snapped again)."""
         o = self.opt
+        targets = self.dots if targets is None else targets
         vis = view_weights(*self.vis(pred, self.cams, min_cos=o.min_cos, return_cos=True))
         radius = min(radius_px * self.fp, o.max_radius_spacing * self.spacing)
         report["search_radius_px"] = round(radius / self.fp, 3)
-        r = progressive_snap(views, pred, self.dots, self.neighbours, known, vis, radius=radius,
+        r = progressive_snap(views, pred, targets, self.neighbours, known, vis, radius=radius,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
                              max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp),
-                             two_view_max_shift=None if e.name == self.neutral else radius + o.step_px * self.fp)
+                             two_view_max_shift=None if e.name == self.neutral else radius + o.step_px * self.fp,
+                             dot_holders=self.dots)
         X, snapped = r.X.copy(), r.snapped.copy()
         rescued = np.zeros(len(X), bool)
         if o.consensus and self.spacing / self.fp >= o.consensus_min_spacing_px:
@@ -333,7 +345,7 @@ class Registrar:
         # polish: visibility from the registered mesh, then a small re-snap of every registered dot (those
         # the consensus pass placed are triangulated from their peaks already)
         vis2 = view_weights(*self.vis(X, self.cams, min_cos=o.min_cos, return_cos=True))
-        ids = self.dots[snapped[self.dots] & ~rescued[self.dots]]
+        ids = targets[snapped[targets] & ~rescued[targets]]
         p = snap(views, X[ids], vis2[:, ids], radius=1.0 * self.fp, step=0.25 * self.fp, max_reproj=o.max_reproj)
         good = p.ok & (p.strength >= 0.5 * o.min_strength)
         X[ids[good]] = p.X[good]
@@ -356,8 +368,8 @@ class Registrar:
             "threshold_schedule": [round(float(t), 4) for t in r.schedule],
             "accepted_per_level": [int(a) for a in r.accepted_per_level],
             "snap_attempts": int(r.attempts),
-            "reprojection_px": median_p95(reproj[self.dots]),
-            "views_per_dot": median_p95(nviews[self.dots][nviews[self.dots] > 0].astype(float)),
+            "reprojection_px": median_p95(reproj[targets]),
+            "views_per_dot": median_p95(nviews[targets][nviews[targets] > 0].astype(float)),
         })
         return X, snapped, r
 

@@ -280,7 +280,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
                      known: dict, vis: np.ndarray, radius: float, step: float, decay: float = 0.8,
                      floor: float = 0.1, min_strength: float = 0.8, max_reproj: float = 1.0,
                      known_radius: float | None = None, min_separation: float = 0.0,
-                     two_view_max_shift: float | None = None) -> ProgressiveResult:
+                     two_view_max_shift: float | None = None, dot_holders=None) -> ProgressiveResult:
     """The paper's progressive snap (module docstring).
 
     ``pred`` (T, 3) morph predictions of all template vertices; ``dots`` ids to register;
@@ -289,7 +289,9 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
     ``radius`` / ``step`` of the 3-D search (metres); ``known_radius`` the search about a known
     point (default ``radius / 2``); ``min_separation`` (metres): a snap landing closer than this to
     a point already registered is refused (it found that point's dot, not its own);
-    ``two_view_max_shift``: see :func:`snap`.
+    ``two_view_max_shift``: see :func:`snap`; ``dot_holders``: ids of the points that hold an image dot once
+    registered or known (default ``dots``): a known fiducial that is not snapped again (a refit round's
+    registered ones) still takes its dot.
     """
     pred = np.asarray(pred, np.float64)
     T = len(pred)
@@ -301,6 +303,9 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
     level = np.full(T, -2, np.int64)
     is_target = np.zeros(T, bool)
     is_target[np.asarray(dots, np.int64)] = True
+    holds = is_target.copy()
+    if dot_holders is not None:
+        holds[np.asarray(dot_holders, np.int64)] = True
     attempts = 0
 
     # 1-2. known points, snapped when they are dots
@@ -357,7 +362,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
                 last_start[rb] = start[redo]
                 cache_X[rb], cache_s[rb], cache_ok[rb] = r.X, r.strength, r.ok
             acc = border[cache_ok[border] & (cache_s[border] >= t)]
-            acc = _exclusive(acc, cache_X, np.flatnonzero(in_S & is_target), X, start[np.searchsorted(border, acc)]
+            acc = _exclusive(acc, cache_X, np.flatnonzero(in_S & holds), X, start[np.searchsorted(border, acc)]
                              if acc.size else np.zeros((0, 3)), min_separation)
             X[border] = np.where(cache_ok[border, None], cache_X[border], start)
             strength[border] = cache_s[border]
@@ -384,7 +389,7 @@ def progressive_snap(views: Views, pred: np.ndarray, dots: np.ndarray, neighbour
         r = snap(views, start, vis[:, rest], radius, step, max_reproj, two_view_max_shift=two_view_max_shift)
         attempts += len(rest)
         acc = r.ok & (r.strength >= t_floor)
-        a_ids = _exclusive(rest[acc], _scatter(T, rest, r.X), np.flatnonzero(in_S & is_target), X, start[acc],
+        a_ids = _exclusive(rest[acc], _scatter(T, rest, r.X), np.flatnonzero(in_S & holds), X, start[acc],
                            min_separation)
         acc = np.isin(rest, a_ids)
         X[rest] = np.where(acc[:, None], r.X, start)
