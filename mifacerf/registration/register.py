@@ -305,7 +305,13 @@ class Registrar:
         known2 = dict(known)
         known2.update({int(v): X[v] for v in anchors})
         sub: dict = {}
-        X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub, targets=rest)
+        # two views alone fix a point poorly in depth (a small baseline): from these starts (a fraction of
+        # a millimetre off where the first round's were several) such a snap must stay within half the
+        # search radius, on the neutral too. Without this, two of head_turn_left's three refitted dots
+        # in the demo capture landed 3.1 and 4.6 mm off from starts 0.7-1.2 mm off.
+        radius = min(radius_px * self.fp, self.opt.max_radius_spacing * self.spacing)
+        X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub, targets=rest,
+                                           two_view_shift=0.5 * radius)
         new = rest[snapped2[rest]]
         if new.size:   # one image dot, one fiducial: a new one on a registered one's dot is left
             from scipy.spatial import cKDTree
@@ -321,10 +327,12 @@ class Registrar:
         return new
 
     def _snap_round(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float,
-                    report: dict, targets: np.ndarray | None = None) -> tuple:
+                    report: dict, targets: np.ndarray | None = None, two_view_shift: float | None = None) -> tuple:
         """One round of snaps (progressive, consensus, polish, single view) of the fiducials ``targets``
         (default all) from ``pred``; ``known`` points are fixed (coarse points; in a refit round, the
-        registered fiducials, not snapped again)."""
+        registered fiducials, not snapped again). A fiducial two views alone triangulate must lie within
+        ``two_view_shift`` (metres; default: the search radius plus a grid step, none on the neutral) of
+        its start."""
         o = self.opt
         targets = self.dots if targets is None else targets
         vis = view_weights(*self.vis(pred, self.cams, min_cos=o.min_cos, return_cos=True))
@@ -333,7 +341,8 @@ class Registrar:
         r = progressive_snap(views, pred, targets, self.neighbours, known, vis, radius=radius,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
                              max_reproj=o.max_reproj, min_separation=max(1.5 * self.tpl.dot_radius, self.fp),
-                             two_view_max_shift=None if e.name == self.neutral else radius + o.step_px * self.fp,
+                             two_view_max_shift=(two_view_shift if two_view_shift is not None else
+                                                 None if e.name == self.neutral else radius + o.step_px * self.fp),
                              dot_holders=self.dots)
         X, snapped = r.X.copy(), r.snapped.copy()
         rescued = np.zeros(len(X), bool)
