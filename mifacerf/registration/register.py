@@ -307,8 +307,8 @@ class Registrar:
         sub: dict = {}
         # two views alone fix a point poorly in depth (a small baseline): from these starts (a fraction of
         # a millimetre off where the first round's were several) such a snap must stay within half the
-        # search radius, on the neutral too. Without this, two of head_turn_left's three refitted dots
-        # in the demo capture landed 3.1 and 4.6 mm off from starts 0.7-1.2 mm off.
+        # search radius, on the neutral too. Without this, one of head_turn_left's refitted dots in the
+        # main job's capture landed 4.6 mm off from a start 0.7 mm off (docs/registration.md).
         radius = min(radius_px * self.fp, self.opt.max_radius_spacing * self.spacing)
         X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub, targets=rest,
                                            two_view_shift=0.5 * radius)
@@ -316,8 +316,8 @@ class Registrar:
         if new.size:   # one image dot, one fiducial: a new one on a registered one's dot is left
             from scipy.spatial import cKDTree
 
-            d, _ = cKDTree(X[anchors]).query(X2[new])
-            new = new[d > max(self.tpl.dot_radius, 0.5 * self.fp)]
+            dist, _ = cKDTree(X[anchors]).query(X2[new])
+            new = new[dist > max(self.tpl.dot_radius, 0.5 * self.fp)]
         X[new] = X2[new]
         snapped[new] = True
         sv = np.intersect1d(np.asarray(sub.get("single_view_dots", []), np.int64), new)
