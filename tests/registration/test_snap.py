@@ -95,3 +95,27 @@ def test_two_view_snap_refuses_a_phantom_shifted_in_depth(rig):
     assert free.ok[0] and np.linalg.norm(free.X[0] - Xp) < 0.5 * fp     # the phantom, without the bound
     bounded = snap(views, X[t:t + 1], vis, radius=3 * fp, step=0.5 * fp, two_view_max_shift=3.5 * fp)
     assert not bounded.ok[0]
+
+
+def test_known_points_that_are_not_targets_still_hold_their_dots(rig):
+    """``dot_holders``: a refit round snaps only the fiducials left, the registered ones fixed as known
+    points; a fiducial whose own dot is missing and whose prediction lies on a registered one's dot must
+    not take that dot (one image dot, one fiducial), with or without them among the targets."""
+    cams, X = rig
+    fp = cams[0].pixel_footprint(1.3)
+    from scipy.spatial import Delaunay
+    F = Delaunay(X[:, :2]).simplices
+    nb = dot_graph(len(X), F, np.ones(len(X), bool))
+    lost = 27                                        # its own dot was never painted
+    present = np.setdiff1d(np.arange(len(X)), [lost])
+    views = Views(cams, strength_maps(cams, X[present]), centroid_sigma=1.3)
+    near = int(np.argsort(np.linalg.norm(X - X[lost], axis=1))[1])
+    pred = X.copy()
+    pred[lost] = X[near] + np.array([0.3, 0.2, 0.0]) * fp    # predicted onto its neighbour's dot
+    known = {int(i): X[i] for i in present}
+    vis = np.ones((len(cams), len(X)), bool)
+    kw = dict(radius=3 * fp, step=0.5 * fp, min_separation=1.0 * fp)
+    free = progressive_snap(views, pred, np.array([lost]), nb, known, vis, **kw)
+    assert free.snapped[lost]                        # without the rule, the neighbour's dot is taken
+    held = progressive_snap(views, pred, np.array([lost]), nb, known, vis, dot_holders=present, **kw)
+    assert not held.snapped[lost]
