@@ -309,7 +309,7 @@ class Registrar:
         # a millimetre off where the first round's were several) such a snap must stay within half the
         # search radius, on the neutral too. Without this, one of head_turn_left's refitted dots in the
         # main job's capture landed 4.6 mm off from a start 0.7 mm off (docs/registration.md).
-        radius = min(radius_px * self.fp, self.opt.max_radius_spacing * self.spacing)
+        radius = self._search_radius(radius_px)
         X2, snapped2, _ = self._snap_round(e, views, pred2, known2, radius_px, sub, targets=rest,
                                            two_view_shift=0.5 * radius)
         new = rest[snapped2[rest]]
@@ -326,6 +326,11 @@ class Registrar:
                              "start_moved_mm": median_p95(1000 * np.linalg.norm(pred2[rest] - pred[rest], axis=1))}
         return new
 
+    def _search_radius(self, radius_px: float) -> float:
+        """The 3-D snap's search radius (metres): ``radius_px`` pixel footprints, at most
+        ``max_radius_spacing`` of the dots' spacing."""
+        return min(radius_px * self.fp, self.opt.max_radius_spacing * self.spacing)
+
     def _snap_round(self, e: Expr, views: Views, pred: np.ndarray, known: dict, radius_px: float,
                     report: dict, targets: np.ndarray | None = None, two_view_shift: float | None = None) -> tuple:
         """One round of snaps (progressive, consensus, polish, single view) of the fiducials ``targets``
@@ -336,7 +341,7 @@ class Registrar:
         o = self.opt
         targets = self.dots if targets is None else targets
         vis = view_weights(*self.vis(pred, self.cams, min_cos=o.min_cos, return_cos=True))
-        radius = min(radius_px * self.fp, o.max_radius_spacing * self.spacing)
+        radius = self._search_radius(radius_px)
         report["search_radius_px"] = round(radius / self.fp, 3)
         r = progressive_snap(views, pred, targets, self.neighbours, known, vis, radius=radius,
                              step=o.step_px * self.fp, decay=o.decay, floor=o.floor, min_strength=o.min_strength,
