@@ -182,3 +182,49 @@ class MeshScene:
             hits = self.trace(camera.centre, d / dist[:, None])
             vis[inside] = ~hits.valid | (hits.t >= dist - tol)
         return vis
+
+
+class CurvedMeshScene(MeshScene):
+    """A :class:`MeshScene` whose rays meet the Phong-tessellated surface of its coarse mesh
+    (:class:`~mifacerf.geometry.boubekeur2008.PhongTessellation`, ``level`` splits per edge; ``only`` (F,)
+    bool: the faces to curve, the others traced flat) instead of its flat triangles. Everything it
+    reports is on the coarse mesh — ``vertices`` (V, 3), ``faces`` (F, 3), :meth:`face_normals` (flat, per
+    coarse face), and hits as (coarse triangle, barycentrics there) — so a caller swaps it for a
+    :class:`MeshScene` unchanged; the distances ``t`` are to the curved surface. Back faces are culled by
+    the sub-triangles' own orientation. ``level = 1`` traces the coarse mesh."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, level: int = 3, only=None):
+        from .boubekeur2008 import PhongTessellation
+
+        vertices = np.asarray(vertices, np.float64)
+        faces = np.asarray(faces, np.int64).reshape(-1, 3)
+        self.tessellation = PhongTessellation(faces, len(vertices), level, only=only)
+        self._curved = MeshScene(self.tessellation.positions(vertices), self.tessellation.faces)
+        self._mi, self._dr = self._curved._mi, self._curved._dr
+        self.mesh, self.scene = self._curved.mesh, self._curved.scene
+        self.faces = faces
+        self.vertices = vertices
+
+    def set_vertices(self, vertices: np.ndarray, update: bool = True) -> None:
+        v = np.asarray(vertices, np.float64)
+        if v.shape != (self.tessellation.n_vertices, 3):
+            raise ValueError(f"expected ({self.tessellation.n_vertices}, 3) vertices, got {v.shape}")
+        if not np.isfinite(v).all():
+            bad = np.flatnonzero(~np.isfinite(v).all(1))
+            raise ValueError(f"{len(bad)} vertex position(s) are NaN/Inf (first: vertex {bad[0]})")
+        self.vertices = v
+        self._curved.set_vertices(self.tessellation.positions(v), update)
+
+    def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False,
+              max_layers: int = 4) -> Hits:
+        hits = self._curved.trace(origins, directions, cull_back, max_layers)
+        hits.tri, hits.bary = self.tessellation.to_coarse(hits.tri, hits.bary)
+        return hits
+
+    def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
+        hits = self._curved._trace_once(o, d)
+        hits.tri, hits.bary = self.tessellation.to_coarse(hits.tri, hits.bary)
+        return hits
+
+    def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:
+        return self._curved.occluded(points, targets, eps)

@@ -207,10 +207,11 @@ def skin_in_front_of_parts(scene, ray, si, face_shape, part_shapes, active=True)
 
 class CombinedScene:
     """The target's skin template plus its eyes and teeth in one Mitsuba scene, with a part id per triangle
-    (0 = skin, 1.. = PARTS index + 1)."""
+    (0 = skin, 1.. = PARTS index + 1); ``curved`` > 1 traces the skin as its Phong surface
+    (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`)."""
 
-    def __init__(self, skin_vertices, skin_triangles, meshes: dict):
-        from ..geometry.meshscene import MeshScene
+    def __init__(self, skin_vertices, skin_triangles, meshes: dict, curved: int = 1):
+        from ..geometry.meshscene import CurvedMeshScene, MeshScene
 
         self.names = [p for p in PARTS if p in meshes]
         verts = [np.asarray(skin_vertices, np.float64)]
@@ -229,7 +230,9 @@ class CombinedScene:
             off += len(v)
         self.n_skin = len(skin_vertices)
         self.label = np.concatenate(label)
-        self.scene = MeshScene(np.concatenate(verts), np.concatenate(faces))
+        V, F = np.concatenate(verts), np.concatenate(faces)
+        # ``curved`` > 1: the skin traced as its Phong surface (the parts flat), hits reported on the coarse mesh
+        self.scene = MeshScene(V, F) if curved == 1 else CurvedMeshScene(V, F, curved, only=self.label == 0)
 
     def set_pose(self, skin_vertices, transforms: dict) -> np.ndarray:
         v = self.scene.vertices.copy()

@@ -34,7 +34,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import CHORD_OFFSET, ChordOffset, LitFrame, facing_weights, resolve_pixels
 from .lighting import RotatedLightBasis
 from .relight import DeviceLighting
-from ..geometry.meshscene import MeshScene
+from ..geometry.meshscene import CurvedMeshScene, MeshScene
 from ..geometry.rigid import apply
 from ..blas import single_threaded_blas
 from .parts import PARTS, CombinedScene, PartFrame, part_meshes, part_transforms, frame_reference, margin_ids
@@ -108,12 +108,14 @@ class Renderer:
     :data:`.compression.COMPRESSION_METHODS` name (``exact``, ``pca`` with ``rank`` coefficients, or ``sh``
     with spherical harmonics of order ``rank``);
     ``basis``: the environment → light-stage rule, a :data:`mifacerf.environment.LIGHT_BASIS_METHODS`
-    name (``voronoi``).
+    name (``voronoi``). ``curved``: 1 traces the target's triangles flat (the default); ``n`` > 1 traces its
+    Phong surface split ``n`` times per edge (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`; hits
+    and shading stay on the coarse mesh).
     """
 
     def __init__(self, model, depth_tolerance: float = 0.004, method: str = DEFAULT_COMPRESSION_METHOD,
                  rank: int = 8, lights: np.ndarray | None = None, light_epsilon: float = 1e-4,
-                 cache_frames: bool = True, basis: str = DEFAULT_LIGHT_BASIS_METHOD):
+                 cache_frames: bool = True, basis: str = DEFAULT_LIGHT_BASIS_METHOD, curved: int = 1):
         self.compression = compression_method(method)
         lookup(LIGHT_BASIS_METHODS, basis, "light basis")
         if lights is not None and not self.compression.light_subsets:
@@ -134,16 +136,24 @@ class Renderer:
         self.cache_frames = cache_frames
         self._last = None
         neutral = model.vertices[model.expression_index(model.neutral)]
-        self._scene = MeshScene(neutral, model.triangles)
-        meshes = part_meshes(model.template) if model.references else {}
-        self._combined = CombinedScene(neutral, model.triangles, meshes) if meshes else None
-        self._margins = margin_ids(model.template)
-        # the traced target: the face's vertices moved out by the chords' sag (frame.ChordOffset)
-        # on a whole-head template (one with extensions: a coarse polygon of a smooth subject); a face-only
-        # template traces its registered mesh as it is
+        # ``curved`` > 1: the target traced as its Phong surface (geometry.boubekeur2008, ``curved`` splits per
+        # edge) instead of its flat chords, which lie inside a smooth subject's skin. Off by default: a
+        # registration's extension outlines are fitted against the flat mesh (registration.extensions), and
+        # on such a model the curved outline overshoots (docs/rendering.md, "Phong surface")
         exts = model.template.get("extensions") or {}
+        if int(curved) != curved or curved < 1:
+            raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
+        self.curved = int(curved)
+        self._scene = MeshScene(neutral, model.triangles) if self.curved == 1 else \
+            CurvedMeshScene(neutral, model.triangles, self.curved)
+        meshes = part_meshes(model.template) if model.references else {}
+        self._combined = CombinedScene(neutral, model.triangles, meshes, curved=self.curved) if meshes else None
+        self._margins = margin_ids(model.template)
+        # the traced target when flat: a whole-head template's face vertices moved out by the chords' sag
+        # (frame.ChordOffset); a face-only template traces its registered mesh as it is
         ext = [v for e in exts.values() for v in e.get("vertices", [])]
-        self._traced = ChordOffset(model.triangles, model.n_vertices, fixed=ext, k=CHORD_OFFSET if exts else 0.0)
+        k = CHORD_OFFSET if exts and self.curved == 1 else 0.0
+        self._traced = ChordOffset(model.triangles, model.n_vertices, fixed=ext, k=k)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}
