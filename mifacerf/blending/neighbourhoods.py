@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..geometry.graph import edge_graph
+
 __all__ = ["Neighbourhoods", "neighbourhoods", "edge_graph"]
 
 
@@ -61,26 +63,6 @@ class Neighbourhoods:
             index[v, : a.size] = a
             index[v, a.size:] = a[0]
         return cls(index, np.array([a.size for a in lists], dtype=np.int32))
-
-
-def edge_graph(triangles, n_vertices: int | None = None) -> sp.csr_matrix:
-    """Symmetric ``(V, V)`` adjacency (CSR, bool) of the triangles' edges."""
-    F = np.asarray(triangles)
-    if F.ndim != 2 or F.shape[1] != 3:
-        raise ValueError(f"triangles must have shape (F, 3); got {F.shape}")
-    F = F.astype(np.int64)
-    if F.size and F.min() < 0:
-        raise ValueError("triangles contain negative vertex indices")
-    V = int(n_vertices) if n_vertices is not None else (int(F.max()) + 1 if F.size else 0)
-    if F.size and F.max() >= V:
-        raise ValueError(f"triangles reference vertex {int(F.max())} but there are only {V} vertices")
-    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
-    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
-    A = sp.coo_matrix((np.ones(i.size, dtype=bool), (i, j)), shape=(V, V)).tocsr()
-    A = (A + A.T).astype(bool)
-    A.setdiag(False)
-    A.eliminate_zeros()
-    return A.tocsr()
 
 
 def neighbourhoods(triangles, n_vertices: int | None = None, rings: int = 2) -> Neighbourhoods:

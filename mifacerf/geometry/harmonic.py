@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .graph import edge_graph
+
 
 def harmonic_interpolation(n_vertices: int, faces, known_ids, values, order: int = 1,
                            fill: float = 0.0) -> np.ndarray:
@@ -33,7 +35,7 @@ def harmonic_interpolation(n_vertices: int, faces, known_ids, values, order: int
     """
     if order not in (1, 2):
         raise ValueError(f"harmonic_interpolation: order must be 1 or 2, got {order!r}")
-    from scipy.sparse import coo_matrix, diags
+    from scipy.sparse import diags
     from scipy.sparse.csgraph import connected_components
     from scipy.sparse.linalg import spsolve
 
@@ -54,12 +56,7 @@ def harmonic_interpolation(n_vertices: int, faces, known_ids, values, order: int
     out[kid] = vals
     known = np.zeros(n, bool)
     known[kid] = True
-    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]])
-    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]])
-    A = coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n)).tocsr()
-    A.data[:] = 1.0                                   # an edge shared by two triangles counts once
-    A.setdiag(0)
-    A.eliminate_zeros()
+    A = edge_graph(F, n).astype(np.float64)
     # free vertices whose component holds a known vertex; the rest keep ``fill``
     _, comp = connected_components(A, directed=False)
     anchored = np.zeros(comp.max() + 1 if n else 0, bool)

@@ -124,13 +124,9 @@ def relax_margin(X0: np.ndarray, views: dict, cams: dict, iterations: int = 30, 
 
 def rings(n_vertices: int, triangles: np.ndarray, seeds: np.ndarray, k: int) -> np.ndarray:
     """Graph distance (≤ k, else -1) of every vertex from ``seeds`` on the template's edges."""
-    import scipy.sparse as sp
+    from ..geometry.graph import edge_graph
 
-    F = np.asarray(triangles, np.int64).reshape(-1, 3)
-    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
-    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
-    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_vertices, n_vertices))
-    A = ((A + A.T) > 0).tocsr()
+    A = edge_graph(np.asarray(triangles, np.int64).reshape(-1, 3), n_vertices)
     dist = np.full(n_vertices, -1)
     dist[np.asarray(seeds, np.int64)] = 0
     front = np.zeros(n_vertices, bool)
@@ -157,11 +153,9 @@ def propagate(V_before: np.ndarray, V_after_margins: np.ndarray, triangles: np.n
     if free.size == 0:
         return V
     n = len(V)
-    F = np.asarray(triangles, np.int64).reshape(-1, 3)
-    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2]])
-    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0]])
-    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n, n))
-    A = ((A + A.T) > 0).astype(float).tocsr()
+    from ..geometry.graph import edge_graph
+
+    A = edge_graph(np.asarray(triangles, np.int64).reshape(-1, 3), n).astype(float)
     L = sp.diags(np.asarray(A.sum(1)).ravel()) - A
     Lff = L[free][:, free].tocsc()
     fixed = np.setdiff1d(np.arange(n), free)

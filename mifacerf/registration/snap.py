@@ -179,11 +179,9 @@ def dot_graph(n_vertices: int, triangles: np.ndarray, is_dot: np.ndarray) -> lis
     """Neighbours of each vertex among the dot vertices: joined by an edge, or through one non-dot vertex."""
     import scipy.sparse as sp
 
-    F = np.asarray(triangles, np.int64).reshape(-1, 3)
-    i = np.concatenate([F[:, 0], F[:, 1], F[:, 2], F[:, 1], F[:, 2], F[:, 0]])
-    j = np.concatenate([F[:, 1], F[:, 2], F[:, 0], F[:, 0], F[:, 1], F[:, 2]])
-    A = sp.coo_matrix((np.ones(len(i)), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
-    A.data[:] = 1.0
+    from ..geometry.graph import edge_graph
+
+    A = edge_graph(np.asarray(triangles, np.int64).reshape(-1, 3), n_vertices).astype(np.float64)
     nd = sp.diags((~np.asarray(is_dot)).astype(float))
     A2 = A + A @ nd @ A
     A2 = A2.tocsr()
