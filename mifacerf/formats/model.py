@@ -282,6 +282,13 @@ class ModelFolder:
         stored = self.meta.get("part_sources") or {g: [r] for g, r in self.references.items()}
         return {g: list(v) for g, v in stored.items()}
 
+    @property
+    def surface(self) -> dict:
+        """{"method": "phong" / "flat", "curved": n}: the surface the registration fitted the outlines against,
+        which renders trace (Phong level ``n``; 1: flat triangles). Models without it (built before the entry):
+        flat."""
+        return dict(self.meta.get("surface") or {"method": "flat", "curved": 1})
+
     def size_on_disk(self) -> int:
         return sum(p.stat().st_size for p in self.root.rglob("*") if p.is_file())
 

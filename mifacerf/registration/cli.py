@@ -19,8 +19,11 @@ from .dot_removal import DEFAULT_DOT_FILL_METHOD, DOT_FILL_METHODS
 @click.option("--radius-px", type=click.FloatRange(min=0, min_open=True), default=None, help="3-D search radius of the snap, in pixel footprints.")
 @click.option("--floor", type=click.FloatRange(0, 1, min_open=True), default=None,
               help="Lowest dot-strength threshold, as a fraction of the initial one.")
+@click.option("--curved", type=click.IntRange(min=1), default=None,
+              help="The surface renders trace and the extensions' outlines are fitted against: the template's "
+                   "Phong surface split this many times per edge; 1: its flat triangles (default: 3).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, radius_px, floor, quiet):
+def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, radius_px, floor, curved, quiet):
     """Register every expression of CAPTURE into the template (reads only CAPTURE: manifest, images, hand/).
 
     Writes per expression the registered mesh, texture coordinates, visibility, head pose, teeth and
@@ -38,6 +41,8 @@ def register_cmd(capture, out, expressions, force, no_dot_removal, dot_fill, rad
         opt.radius_px = radius_px
     if floor is not None:
         opt.floor = floor
+    if curved is not None:
+        opt.curved = curved
     names = [n.strip() for n in expressions.split(",") if n.strip()] if expressions else None
     try:
         folder = register_capture(capture, out=out, expressions=names, force=force, options=opt,

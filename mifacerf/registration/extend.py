@@ -25,14 +25,15 @@ from ..geometry.visibility import Visibility
 from .extensions import (check_extensions, extensions_from_template, fit_extensions_to_outlines,
                          place_in_expression)
 from .hand import read_hand_inputs
-from .register import RegistrationInputError
+from .register import Options, RegistrationInputError, surface_meta
 from .texcoords import texture_coordinates
 
 #: registration-wide entries carried over unchanged
 META_KEYS = ("options", "hand_input_problems", "dot_filter", "head_points_neutral", "eyes_head_frame", "eyes")
 
 
-def extend_registration(capture, registration=None, out=None, log=None, silhouettes: bool = True) -> Path:
+def extend_registration(capture, registration=None, out=None, log=None, silhouettes: bool = True,
+                        curved: int | None = None) -> Path:
     """Write ``out`` (default ``CAPTURE/registration-extended``): the registration ``registration`` (default
     ``CAPTURE/registration``) with the extensions of ``CAPTURE/hand/template.json`` placed in every
     expression. Refuses a template whose first vertices are not the registered template's.
@@ -40,7 +41,10 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
     ``silhouettes``: first move the template's extension vertices so that, placed in the neutral, their
     outline in every capture camera lies on the subject's (:func:`.extensions.refine_template_extensions`,
     mattes from the neutral's diffuse proxies against the stage's dark background); the registration's
-    ``template.json`` carries the moved positions and the neutral's report says how far they moved."""
+    ``template.json`` carries the moved positions and the neutral's report says how far they moved.
+    ``curved``: the surface renders trace (``Options.curved``; default: the old registration's ``surface``,
+    else ``Options``' default); the outline fit is made against it and the new folder records it."""
+
     log = log or (lambda msg: None)
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     old = Registration(registration or cap.root / "registration", capture=cap)
@@ -71,9 +75,12 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
     vis = Visibility(tpl.triangles, tpl.n_vertices, tol=max(0.5 * centre_footprint(cams), 5e-4))
     names = old.expression_names
     neutral = next((e.name for e in cap.expressions if e.category == "neutral" and e.name in names), names[0])
+    if curved is None:
+        curved = (old.meta.get("surface") or {}).get("curved", Options.curved)
+    Options(curved=curved)     # checked
     rest, refined, raw = tpl.vertices, None, tpl.to_dict()
     if silhouettes:
-        rest, refined = _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis)
+        rest, refined = _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis, curved)
         raw["vertices"] = [dict(v, position=np.round(rest[i], 7).tolist()) if i >= n_face else v
                            for i, v in enumerate(raw["vertices"])]
         log(f"extensions fitted to the neutral's outlines: {refined['summary']}")
@@ -82,6 +89,7 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
         for key in META_KEYS:
             if key in old.meta:
                 writer.set_meta(key, old.meta[key])
+        writer.set_meta("surface", surface_meta(curved))
         N = None
         for name in [neutral] + [n for n in names if n != neutral]:
             r = old.expression(name)
@@ -112,7 +120,7 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
     return writer.finish()
 
 
-def _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis) -> tuple[np.ndarray, dict]:
+def _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis, curved) -> tuple[np.ndarray, dict]:
     """The template with its extensions fitted to the neutral's outlines, and the fit's report."""
     from .proxies import proxies_for
 
@@ -121,4 +129,4 @@ def _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis) -> tuple[np.n
     status = np.concatenate([r.status, np.zeros(tpl.n_vertices - n_face, r.status.dtype)])
     images = [proxies_for(cap, neutral, c.name).diffuse for c in cams]
     return fit_extensions_to_outlines(tpl.vertices, tpl.triangles, tpl.dot_ids, exts, V, status, r.head_pose,
-                                      cams, images, vis)
+                                      cams, images, vis, curved=curved)

@@ -336,7 +336,8 @@ def outline_offsets(V, N, ids, camera, matte, own, max_cos: float = 0.15, search
 
 
 def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iterations: int = 8,
-                          smoothness: float = 0.1, max_step: float = 0.003, **options) -> tuple[np.ndarray, dict]:
+                          smoothness: float = 0.1, max_step: float = 0.003, curved: int = 1,
+                          **options) -> tuple[np.ndarray, dict]:
     """Move the vertices ``ids`` of mesh ``V`` (T, 3) along their normals so that the mesh's outline in each
     of ``cameras`` lies on the subject's outline in its ``mattes`` (H, W) (:func:`silhouette_matte`).
 
@@ -345,13 +346,18 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     go there), and solves for a smooth displacement of all ``ids`` (weighted least squares on the
     measurements + ``smoothness`` × the squared differences across mesh edges; the other vertices of the
     mesh stay fixed, so the extensions stay stitched to the face), each step clipped to ``max_step`` m.
+    ``curved``: the mesh's outline is that of its Phong surface at this level
+    (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`; 1: the flat triangles) — fit against the surface
+    the renders will trace, or the outline is off by the chords' sag (docs/rendering.md, "Phong surface").
     Returns (the moved (T, 3) copy of ``V``, a report: vertices measured, mean |offset| first and last)."""
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import spsolve
 
-    from ..geometry.meshscene import MeshScene
+    from ..geometry.meshscene import CurvedMeshScene, MeshScene
     from ..geometry.visibility import vertex_normals
 
+    if int(curved) != curved or curved < 1:
+        raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
     V = np.asarray(V, np.float64).copy()
     F = np.asarray(faces, np.int64)
     ids = np.unique(np.asarray(ids, np.int64))
@@ -362,7 +368,7 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     e = np.unique(np.sort(e, axis=1), axis=0)
     e = e[(free[e] >= 0).any(1)]
     report = {"vertices": int(len(ids)), "rounds": []}
-    scene = MeshScene(V, F)
+    scene = MeshScene(V, F) if curved == 1 else CurvedMeshScene(V, F, int(curved))
     search = float(options.get("search_px", 4.0))
     rays = [MatteRays(cam, matte=matte, band_px=2 * search + 2) for cam, matte in zip(cameras, mattes)]
     for _ in range(max(0, int(iterations))):

@@ -118,11 +118,22 @@ class Options:
     fit_extension_outlines: bool = True  #: a template with extensions: move their vertices (on the neutral) until
     #:   their outline in every camera lies on the subject's (.extensions.fit_extensions_to_outlines); the
     #:   registration's template.json carries the fitted positions. False: the user's positions as placed
+    curved: int = 3                   #: the surface renders trace, recorded in registration.json (``surface``) and
+    #:   the model: the template's Phong surface at this level (geometry.boubekeur2008; 1: flat triangles). The
+    #:   extensions' outline fit is made against the same surface, or the rendered outline is off by the sag
 
     def __post_init__(self):
         from ..methods import lookup
 
         lookup(DOT_FILL_METHODS, self.dot_fill, "dot fill")   # an unknown fill fails here, not after hours
+        if isinstance(self.curved, bool) or int(self.curved) != self.curved or self.curved < 1:
+            raise ValueError(f"curved must be a whole number >= 1 (1: flat triangles), got {self.curved!r}")
+
+
+def surface_meta(curved: int) -> dict:
+    """registration.json's ``surface``: the surface the registration's outlines were fitted against and renders
+    trace (the model carries it over; :class:`~mifacerf.rendering.renderer.Renderer`'s default ``curved``)."""
+    return {"method": "phong" if curved > 1 else "flat", "curved": int(curved)}
 
 
 @dataclass
@@ -550,7 +561,8 @@ class Registrar:
         t0 = time.time()
         images = [e.diffuse[n] for n in self.names]
         rest, rep = fit_extensions_to_outlines(self.tpl.vertices, self.tpl.triangles, self.dots, self.extensions,
-                                               V, status, T_head, self.cams, images, self.vis)
+                                               V, status, T_head, self.cams, images, self.vis,
+                                               curved=self.opt.curved)
         raw = dict(self.tpl.raw)
         raw["vertices"] = [dict(v, position=np.round(rest[i], 7).tolist()) if self.is_extension[i] else v
                            for i, v in enumerate(self.tpl.raw["vertices"])]
@@ -569,7 +581,8 @@ class Registrar:
         tpath = self.writer.root / "template.json"
         write_json_atomic(tpath, raw)
         self.writer.meta["files"]["template.json"] = file_entry(tpath)
-        self.writer.set_meta("extension_fit", {"summary": fit["summary"], "moved_mm": fit["moved_mm"]})
+        self.writer.set_meta("extension_fit", {"summary": fit["summary"], "moved_mm": fit["moved_mm"],
+                                               "curved": int(self.opt.curved)})
 
     def _fitted_template(self, out: Path) -> Template | None:
         """The template of a registration in ``out`` whose extensions were fitted to the outlines: the user's
@@ -583,7 +596,8 @@ class Registrar:
         except (OSError, ValueError):
             return None
         mine = self.tpl.raw
-        if "extension_fit" not in meta or {k: v for k, v in d.items() if k != "vertices"} != \
+        if "extension_fit" not in meta or meta["extension_fit"].get("curved", 1) != self.opt.curved or \
+                {k: v for k, v in d.items() if k != "vertices"} != \
                 {k: v for k, v in json.loads(json.dumps(mine)).items() if k != "vertices"}:
             return None
         vs, ws = d.get("vertices", []), json.loads(json.dumps(mine["vertices"]))
@@ -999,6 +1013,7 @@ def register_capture(capture, out=None, expressions=None, force: bool = False, o
     reg = Registrar(cap, out, options, log, fresh=force and not expressions)
     try:
         reg.writer.set_meta("options", asdict(reg.opt))
+        reg.writer.set_meta("surface", surface_meta(reg.opt.curved))
         reg.writer.set_meta("hand_input_problems", reg.hand.problems)
         for n in cap.expression_names:
             if reg.writer.done(n) and n not in redo:

@@ -200,6 +200,7 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
         writer.extra["part_sources"] = sources
         writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, sources,
                                                   cap.rig.lights.directions)
+        writer.extra["surface"] = dict(reg.meta.get("surface") or {"method": "flat", "curved": 1})
         writer.extra["source"] = {"capture": str(Path(capture).resolve()),
                                   "registration": str(reg.root.resolve())}
         return writer.finish(blend)

@@ -108,14 +108,15 @@ class Renderer:
     :data:`.compression.COMPRESSION_METHODS` name (``exact``, ``pca`` with ``rank`` coefficients, or ``sh``
     with spherical harmonics of order ``rank``);
     ``basis``: the environment → light-stage rule, a :data:`mifacerf.environment.LIGHT_BASIS_METHODS`
-    name (``voronoi``). ``curved``: 1 traces the target's triangles flat (the default); ``n`` > 1 traces its
-    Phong surface split ``n`` times per edge (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`; hits
-    and shading stay on the coarse mesh).
+    name (``voronoi``). ``curved``: 1 traces the target's triangles flat; ``n`` > 1 traces its Phong surface
+    split ``n`` times per edge (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`; hits and shading stay
+    on the coarse mesh); None (the default): the model's own (:attr:`Model.surface`, the surface its
+    registration fitted the outlines against).
     """
 
     def __init__(self, model, depth_tolerance: float = 0.004, method: str = DEFAULT_COMPRESSION_METHOD,
                  rank: int = 8, lights: np.ndarray | None = None, light_epsilon: float = 1e-4,
-                 cache_frames: bool = True, basis: str = DEFAULT_LIGHT_BASIS_METHOD, curved: int = 1):
+                 cache_frames: bool = True, basis: str = DEFAULT_LIGHT_BASIS_METHOD, curved: int | None = None):
         self.compression = compression_method(method)
         lookup(LIGHT_BASIS_METHODS, basis, "light basis")
         if lights is not None and not self.compression.light_subsets:
@@ -137,11 +138,13 @@ class Renderer:
         self._last = None
         neutral = model.vertices[model.expression_index(model.neutral)]
         # ``curved`` > 1: the target traced as its Phong surface (geometry.boubekeur2008, ``curved`` splits per
-        # edge) instead of its flat chords, which lie inside a smooth subject's skin. Off by default: a
-        # registration's extension outlines are fitted against the flat mesh (registration.extensions), and
-        # on such a model the curved outline overshoots (docs/rendering.md, "Phong surface")
+        # edge) instead of its flat chords, which lie inside a smooth subject's skin. The default is the
+        # model's: its extension outlines were fitted against that surface (registration.extensions), and
+        # another one misplaces them by the chords' sag (docs/rendering.md, "Phong surface")
         exts = model.template.get("extensions") or {}
-        if int(curved) != curved or curved < 1:
+        if curved is None:
+            curved = int(getattr(model, "surface", {}).get("curved", 1))
+        if isinstance(curved, bool) or int(curved) != curved or curved < 1:
             raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
         self.curved = int(curved)
         self._scene = MeshScene(neutral, model.triangles) if self.curved == 1 else \

@@ -203,6 +203,8 @@ def test_registration_fits_the_extensions_to_the_outlines_on_the_tiny_preset(tmp
     first, last = fit["rounds"][0], fit["rounds"][-1]
     assert first["measured"] > 20 and last["mean_abs_offset_mm"] < 0.5 * first["mean_abs_offset_mm"]
     assert fit["time_s"] < 10 and on.meta["extension_fit"]["summary"] == fit["summary"]
+    assert on.meta["surface"] == {"method": "phong", "curved": Options.curved} == off.meta["surface"]
+    assert on.meta["extension_fit"]["curved"] == Options.curved     # fitted against the surface renders trace
     Y = np.array([v["position"] for v in on.template["vertices"]])
     face = np.setdiff1d(np.arange(len(X)), ext)
     np.testing.assert_array_equal(Y[face], X[face])

@@ -1,6 +1,7 @@
 """Extensions fitted to the capture's outlines (issue 16): a template extension placed with clicking error
 moves along its normals until its outline in every camera lies on the subject's."""
 import numpy as np
+import pytest
 
 from mifacerf.camera import Camera
 from mifacerf.geometry.meshscene import MeshScene
@@ -73,3 +74,30 @@ def test_refinement_brings_a_noisy_extension_onto_the_subjects_outline():
     assert rep["rounds"] and rep["rounds"][0]["measured"] > 10
     fixed = np.setdiff1d(np.arange(len(V)), ids)
     assert (fitted[fixed] == noisy[fixed]).all()      # the rest of the mesh (the face) stays where it is
+
+
+def test_fitting_against_the_phong_surface_keeps_vertices_on_the_subject():
+    """The fit measures the outline of the surface the renders trace (``curved``): against the flat chords it
+    pushes outline vertices out by part of the sag (the flat outline lies inside a round subject), against
+    the Phong surface they stay on the sphere, and that surface then covers the subject's matte far better
+    than the flat fit's chords do."""
+    from mifacerf.geometry.meshscene import CurvedMeshScene
+
+    V, F = _sphere(8, 12)                              # coarse: chords sag ~3 mm at the equator
+    fine_V, fine_F = _sphere(40, 64)
+    cams = _cameras()
+    mattes = [mesh_matte(MeshScene(fine_V, fine_F), c, spp=16) for c in cams]
+    ids = np.flatnonzero(V[:, 1] > -0.05)
+
+    def fit(level):
+        X, _ = refine_to_silhouettes(V, F, ids, cams, mattes, curved=level)
+        scene = MeshScene(X, F) if level == 1 else CurvedMeshScene(X, F, level)
+        err = np.mean([np.abs(mesh_matte(scene, c, spp=16) - m).sum() for c, m in zip(cams, mattes)])
+        return np.abs(np.linalg.norm(X[ids], axis=1) - 0.1).mean(), err
+
+    off_flat, err_flat = fit(1)
+    off_curved, err_curved = fit(3)
+    assert off_curved < 0.5 * off_flat, (off_curved, off_flat)
+    assert err_curved < 0.3 * err_flat, (err_curved, err_flat)
+    with pytest.raises(ValueError, match="curved must be a whole number"):
+        refine_to_silhouettes(V, F, ids, cams, mattes, curved=0)
