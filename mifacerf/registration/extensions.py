@@ -336,7 +336,7 @@ def outline_offsets(V, N, ids, camera, matte, own, max_cos: float = 0.15, search
 
 
 def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iterations: int = 8,
-                          smoothness: float = 0.1, max_step: float = 0.003, curved: int = 1,
+                          smoothness: float = 0.1, max_step: float = 0.003, curved: int = 1, poses=(),
                           **options) -> tuple[np.ndarray, dict]:
     """Move the vertices ``ids`` of mesh ``V`` (T, 3) along their normals so that the mesh's outline in each
     of ``cameras`` lies on the subject's outline in its ``mattes`` (H, W) (:func:`silhouette_matte`).
@@ -349,7 +349,12 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     ``curved``: the mesh's outline is that of its Phong surface at this level
     (:class:`~mifacerf.geometry.meshscene.CurvedMeshScene`; 1: the flat triangles) — fit against the surface
     the renders will trace, or the outline is off by the chords' sag (docs/rendering.md, "Phong surface").
-    Returns (the moved (T, 3) copy of ``V``, a report: vertices measured, mean |offset| first and last)."""
+    ``poses``: more views of the same vertices, each ``(V_k (T, 3), cameras_k, mattes_k, visible_k or None)``
+    (the mesh in another expression, the extensions placed rigidly or nearly so): they share the one
+    displacement along the normals (a rigid motion keeps a displacement along the normal one), so a
+    turned head's outlines constrain vertices the first pose's outlines never pass through.
+    Returns (the moved (T, 3) copy of ``V``, a report: vertices measured, mean |offset| first and last;
+    ``moved_poses``: the other poses' moved copies)."""
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import spsolve
 
@@ -358,31 +363,37 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
 
     if int(curved) != curved or curved < 1:
         raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
-    V = np.asarray(V, np.float64).copy()
+    views = [(V, cameras, mattes, visible)] + [tuple(p) for p in poses]
+    Vs = [np.asarray(v[0], np.float64).copy() for v in views]
     F = np.asarray(faces, np.int64)
+    T = len(Vs[0])
+    if any(v.shape != (T, 3) for v in Vs):
+        raise ValueError(f"every pose needs ({T}, 3) vertices, got {[v.shape for v in Vs]}")
     ids = np.unique(np.asarray(ids, np.int64))
-    T = len(V)
     free = np.full(T, -1, np.int64)
     free[ids] = np.arange(len(ids))
     e = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     e = np.unique(np.sort(e, axis=1), axis=0)
     e = e[(free[e] >= 0).any(1)]
-    report = {"vertices": int(len(ids)), "rounds": []}
-    scene = MeshScene(V, F) if curved == 1 else CurvedMeshScene(V, F, int(curved))
+    report = {"vertices": int(len(ids)), "poses": len(views), "rounds": []}
+    scenes = [MeshScene(v, F) if curved == 1 else CurvedMeshScene(v, F, int(curved)) for v in Vs]
     search = float(options.get("search_px", 4.0))
-    rays = [MatteRays(cam, matte=matte, band_px=2 * search + 2) for cam, matte in zip(cameras, mattes)]
+    rays = [[MatteRays(cam, matte=matte, band_px=2 * search + 2) for cam, matte in zip(view[1], view[2])]
+            for view in views]
     for _ in range(max(0, int(iterations))):
-        N = vertex_normals(V, F)
-        scene.set_vertices(V)
+        Ns = [vertex_normals(v, F) for v in Vs]
         num = np.zeros(len(ids))
         den = np.zeros(len(ids))
-        for c, (cam, matte) in enumerate(zip(cameras, mattes)):
-            sel = ids if visible is None else ids[np.asarray(visible)[c, ids]]
-            if not len(sel):
-                continue
-            off, w = outline_offsets(V, N, sel, cam, matte, mesh_matte(scene, cam, rays=rays[c]), **options)
-            np.add.at(num, free[sel], w * off)
-            np.add.at(den, free[sel], w)
+        for k, (_, cams, mats, vis) in enumerate(views):
+            scenes[k].set_vertices(Vs[k])
+            for c, (cam, matte) in enumerate(zip(cams, mats)):
+                sel = ids if vis is None else ids[np.asarray(vis)[c, ids]]
+                if not len(sel):
+                    continue
+                off, w = outline_offsets(Vs[k], Ns[k], sel, cam, matte,
+                                         mesh_matte(scenes[k], cam, rays=rays[k][c]), **options)
+                np.add.at(num, free[sel], w * off)
+                np.add.at(den, free[sel], w)
         seen = den > 0
         if not seen.any():
             break
@@ -399,10 +410,13 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
                        shape=(len(ids), len(ids))).tocsr()
         A = (L + diags(den + 1e-9)).tocsc()
         s = np.clip(spsolve(A, den * d), -max_step, max_step)
-        V[ids] += s[:, None] * N[ids]
+        for v, N in zip(Vs, Ns):
+            v[ids] += s[:, None] * N[ids]
         report["rounds"].append({"measured": int(seen.sum()), "mean_abs_offset_mm": float(1000 * np.abs(d[seen]).mean()),
                                  "mean_abs_step_mm": float(1000 * np.abs(s).mean())})
-    return V, report
+    if len(Vs) > 1:
+        report["moved_poses"] = Vs[1:]
+    return Vs[0], report
 
 
 def fit_extensions_to_outlines(template, faces, fiducials, extensions, V, status, head, cameras, images, vis,

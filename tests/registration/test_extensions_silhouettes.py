@@ -101,3 +101,32 @@ def test_fitting_against_the_phong_surface_keeps_vertices_on_the_subject():
     assert err_curved < 0.3 * err_flat, (err_curved, err_flat)
     with pytest.raises(ValueError, match="curved must be a whole number"):
         refine_to_silhouettes(V, F, ids, cams, mattes, curved=0)
+
+
+def test_a_second_pose_constrains_vertices_the_first_poses_outlines_miss():
+    """``poses``: the same vertices seen in another (rigid) pose share one displacement along the normals, so
+    outlines of the turned mesh fit vertices the first pose's cameras never see on an outline; the moved
+    poses stay one rigid motion apart."""
+    V, F = _sphere()
+    fine_V, fine_F = _sphere(40, 64)
+    cams = _cameras()
+    a = np.radians(70)
+    R = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])   # tipped about x
+    truth0 = MeshScene(fine_V, fine_F)
+    truth1 = MeshScene(fine_V @ R.T, fine_F)
+    mattes0 = [mesh_matte(truth0, c, spp=16) for c in cams]
+    mattes1 = [mesh_matte(truth1, c, spp=16) for c in cams]
+    rng = np.random.default_rng(5)
+    ids = np.arange(len(V))
+    N = vertex_normals(V, F)
+    noisy = V + rng.normal(0, 0.002, len(V))[:, None] * N
+    one, rep1 = refine_to_silhouettes(noisy, F, ids, cams, mattes0)
+    two, rep2 = refine_to_silhouettes(noisy, F, ids, cams, mattes0, poses=[(noisy @ R.T, cams, mattes1, None)])
+    assert rep2["rounds"][0]["measured"] > 1.3 * rep1["rounds"][0]["measured"]
+    np.testing.assert_allclose(rep2["moved_poses"][0], two @ R.T, atol=1e-9)
+    err = lambda X: np.abs(np.linalg.norm(X, axis=1) - 0.1)   # noqa: E731  (the sphere's radius: the truth)
+    top = np.abs(V[:, 1]) > 0.07                  # near the poles: on no outline of the level cameras
+    assert err(two)[top].mean() < 0.85 * err(one)[top].mean(), (err(two)[top].mean(), err(one)[top].mean())
+    assert err(two).mean() < err(one).mean()
+    with pytest.raises(ValueError, match="every pose needs"):
+        refine_to_silhouettes(noisy, F, ids, cams, mattes0, poses=[(noisy[:-1], cams, mattes1, None)])
