@@ -1,7 +1,7 @@
 """Frame times of a model, measured side by side: every configuration renders the same frame before the
 next frame is drawn, so a loaded machine slows them alike (compare the ratios, not the seconds).
 
-    python benchmarks/speed.py MODEL [--configs exact,sh4,pca8] [--sizes 256,1024] [--frames 5]
+    python benchmarks/speed.py MODEL [--configs exact,exact/c1,sh4,pca8] [--sizes 256,1024] [--frames 5]
                                [--sequence 120] [--drive TRACK --drive-frames 30] [--cold] [--skips] [--warm]
                                [--json OUT.json]
 
@@ -39,18 +39,23 @@ import numpy as np
 
 
 def renderer_for(face, config: str):
-    """A configuration name (``exact``, ``<method><rank>``: ``sh4``, ``pca8``) → a Renderer of the model."""
+    """A configuration name (``exact``, ``<method><rank>``: ``sh4``, ``pca8``; a suffix ``/c<n>`` traces the
+    surface at Phong level n instead of the model's own, ``/c1`` flat: ``exact/c1``) → a Renderer of the model."""
     import re
 
     from mifacerf.rendering.renderer import Renderer
 
-    if config == "exact":
-        r = Renderer(face.model)
+    name, _, level = config.partition("/c")
+    if level and not level.isdigit():
+        raise SystemExit(f"unknown configuration {config!r}: the surface suffix is /c<level>, e.g. exact/c1")
+    surface = {"curved": int(level)} if level else {}
+    if name == "exact":
+        r = Renderer(face.model, **surface)
     else:
-        m = re.fullmatch(r"([a-z_]+?)(\d+)", config)
+        m = re.fullmatch(r"([a-z_]+?)(\d+)", name)
         if not m:
             raise SystemExit(f"unknown configuration {config!r} (exact, or <method><rank> such as sh4, pca8)")
-        r = Renderer(face.model, method=m[1], rank=int(m[2]))
+        r = Renderer(face.model, method=m[1], rank=int(m[2]), **surface)
     r.cache_frames = False
     return r
 
