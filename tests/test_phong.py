@@ -124,3 +124,25 @@ def test_curved_scene_hits_the_curved_surface_and_reports_coarse_hits(mi):
     again = curved_scene.trace(origins, -d, cull_back=True)
     assert np.allclose(3.0 - again.t, 2 * r_curved, atol=1e-4)
     assert np.array_equal(curved_scene.face_normals().shape, (len(F), 3))
+
+
+def test_curved_scene_maps_hits_to_the_coarse_mesh_on_the_device_as_the_tessellation_does(mi):
+    """CurvedMeshScene maps sub-face hits to (coarse face, barycentrics) inside the ray cast's kernel: the same
+    answer as PhongTessellation.to_coarse on the sub-mesh's own hits, for one origin and for many."""
+    from mifacerf.geometry.meshscene import CurvedMeshScene
+
+    V, F = icosphere(1)
+    scene = CurvedMeshScene(V, F, level=3)
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(3000, 3)) * [0.2, 0.2, 1.0] + [0, 0, -1]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for o in (np.array([0.0, 0.0, 3.0]), rng.normal(0, 0.05, (3000, 3)) + [0, 0, 3.0]):
+        got = scene._trace_once(o, d)
+        sub = scene._curved._trace_once(o, d)
+        tri, bary = scene.tessellation.to_coarse(sub.tri, sub.bary)
+        assert got.valid.any() and (~got.valid).any()           # hits and misses both
+        np.testing.assert_array_equal(got.valid, sub.valid)
+        np.testing.assert_array_equal(got.tri, tri)
+        np.testing.assert_allclose(got.bary, bary, atol=1e-6)
+        np.testing.assert_array_equal(got.t, sub.t)
+        assert (got.bary[~got.valid] == 0).all() and (got.tri[~got.valid] == -1).all()

@@ -212,7 +212,11 @@ def test_registration_fits_the_extensions_to_the_outlines_on_the_tiny_preset(tmp
     assert {k: v for k, v in on.template.items() if k != "vertices"} == {k: v for k, v in hand.items() if k != "vertices"}
     for name in ("neutral", "smile"):     # the expressions placed from the fitted template: not as without it
         assert np.abs(on.expression(name).vertices[ext] - off.expression(name).vertices[ext]).max() > 1e-4
-        np.testing.assert_array_equal(on.expression(name).vertices[face], off.expression(name).vertices[face])
+    # the neutral's face is registered before the fit: unchanged. Later expressions are snapped with the fitted
+    # extensions occluding dots (a dot behind an ear is not searched in that view), so their faces may differ
+    # (here: one dot of 300 in the smile, fitted against the Phong surface); the registered share barely moves
+    np.testing.assert_array_equal(on.expression("neutral").vertices[face], off.expression("neutral").vertices[face])
+    assert abs(on.report("smile")["registered_fraction"] - off.report("smile")["registered_fraction"]) <= 0.01
     before = (out / "template.json").read_bytes()
     register_capture(cap, out, progress=False)          # resumed (nothing to do): the fit is kept
     assert (out / "template.json").read_bytes() == before and Registration(out).verify() == []

@@ -27,12 +27,13 @@ def part_samples(skin, part, camera):
 
 def scene_hits(skin, part, camera):
     """Hits of the camera's pixel centres on skin + part (part triangles after the skin's), back faces culled
-    as the renderer does, and a stand-in renderer holding the skin alone."""
+    as the renderer does, and a stand-in renderer holding that combined scene."""
     V = np.concatenate([skin.vertices, part.vertices])
     F = np.concatenate([skin.faces, part.faces + len(skin.vertices)])
-    hits, uv = MeshScene(V, F).render_hits(camera, 1)
+    scene = MeshScene(V, F)
+    hits, uv = scene.render_hits(camera, 1)
     fake = SimpleNamespace(model=SimpleNamespace(triangles=np.asarray(skin.faces)),
-                           _scene=MeshScene(skin.vertices, skin.faces))
+                           _combined=SimpleNamespace(scene=scene))
     return hits, uv, fake
 
 
@@ -42,7 +43,7 @@ def test_a_part_poking_out_shows_the_skin_and_one_behind_an_opening_stays(mi):
     skin = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
     # a ball centred on the skin's front: its front half pokes out of the head
     hits, uv, fake, on_part = part_samples(skin, ball(0.03, 0.1 * towards), cam)
-    Renderer._parts_inside_skin(fake, hits, uv, cam, np.asarray(skin.vertices))
+    Renderer._parts_inside_skin(fake, hits, uv, cam)
     assert not (hits.valid & (hits.tri >= len(skin.faces))).any()   # all replaced by the skin behind
     assert hits.valid[on_part].all() and np.isfinite(hits.t[on_part]).all()
     # the replacement is the skin's own first hit from the camera
@@ -55,7 +56,7 @@ def test_a_part_poking_out_shows_the_skin_and_one_behind_an_opening_stays(mi):
     open_skin = trimesh.Trimesh(skin.vertices, skin.faces[centres < 0.07], process=False)
     hits, uv, fake, _ = part_samples(open_skin, ball(0.03, 0.05 * towards), cam)
     before = hits.tri.copy()
-    Renderer._parts_inside_skin(fake, hits, uv, cam, np.asarray(open_skin.vertices))
+    Renderer._parts_inside_skin(fake, hits, uv, cam)
     np.testing.assert_array_equal(hits.tri, before)
 
 
