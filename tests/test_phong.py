@@ -146,3 +146,13 @@ def test_curved_scene_maps_hits_to_the_coarse_mesh_on_the_device_as_the_tessella
         np.testing.assert_allclose(got.bary, bary, atol=1e-6)
         np.testing.assert_array_equal(got.t, sub.t)
         assert (got.bary[~got.valid] == 0).all() and (got.tri[~got.valid] == -1).all()
+    # with back faces culled (rays from inside the sphere meet only its inside: no hit; from outside, its
+    # front): as the sub-mesh's own trace
+    o = np.concatenate([rng.normal(0, 0.05, (1500, 3)), rng.normal(0, 0.05, (1500, 3)) + [0, 0, 3.0]])
+    got = scene.trace(o, d, cull_back=True)
+    sub = scene._curved.trace(o, d, cull_back=True)
+    tri, bary = scene.tessellation.to_coarse(sub.tri, sub.bary)
+    assert got.valid.any() and (~got.valid).any()
+    np.testing.assert_array_equal(got.tri, tri)
+    np.testing.assert_allclose(got.bary, bary, atol=1e-6)
+    np.testing.assert_allclose(got.t, sub.t, rtol=1e-6)

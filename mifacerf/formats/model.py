@@ -287,7 +287,9 @@ class ModelFolder:
         """{"method": "phong" / "flat", "curved": n}: the surface the registration fitted the outlines against,
         which renders trace (Phong level ``n``; 1: flat triangles). Models without it (built before the entry):
         flat."""
-        return dict(self.meta.get("surface") or {"method": "flat", "curved": 1})
+        from ..geometry.boubekeur2008 import surface_entry
+
+        return dict(self.meta.get("surface") or surface_entry(1))
 
     def size_on_disk(self) -> int:
         return sum(p.stat().st_size for p in self.root.rglob("*") if p.is_file())

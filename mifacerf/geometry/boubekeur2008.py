@@ -148,4 +148,20 @@ class PhongTessellation:
         return out_tri, out_bary
 
 
-__all__ = ["ALPHA", "PhongTessellation"]
+def check_curved(curved) -> int:
+    """``curved`` (a Phong level: splits per edge, 1 the flat triangles) as an int; ``ValueError`` naming it
+    unless it is a whole number >= 1 (a bool is refused)."""
+    if isinstance(curved, bool) or not isinstance(curved, (int, float, np.integer, np.floating)) \
+            or int(curved) != curved or curved < 1:
+        raise ValueError(f"curved must be a whole number >= 1 (1: flat triangles), got {curved!r}")
+    return int(curved)
+
+
+def surface_entry(curved: int = 1) -> dict:
+    """The ``surface`` entry of registration.json and model.json: the surface a registration fitted the
+    outlines against and renders trace (``{"method": "phong" / "flat", "curved": level}``)."""
+    curved = check_curved(curved)
+    return {"method": "phong" if curved > 1 else "flat", "curved": curved}
+
+
+__all__ = ["ALPHA", "PhongTessellation", "check_curved", "surface_entry"]

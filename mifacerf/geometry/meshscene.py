@@ -26,6 +26,13 @@ class Hits:
     tri: np.ndarray
     bary: np.ndarray
     t: np.ndarray
+    sub: np.ndarray | None = None   #: (N,) the traced primitive where it is not ``tri`` (CurvedMeshScene's sub-faces)
+
+    def take(self, rows: np.ndarray, other: "Hits") -> None:
+        """Rows ``rows`` replaced by ``other``'s (its rows in that order); ``t`` as given."""
+        self.valid[rows], self.tri[rows], self.bary[rows], self.t[rows] = other.valid, other.tri, other.bary, other.t
+        if self.sub is not None:
+            self.sub[rows] = other.sub
 
 
 class MeshScene:
@@ -70,60 +77,79 @@ class MeshScene:
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
 
     def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False,
-              max_layers: int = 4) -> Hits:
+              max_layers: int = 4, through: np.ndarray | None = None) -> Hits:
         """Closest hits of rays (origins (N, 3) or (3,), unit directions (N, 3)), world frame.
 
         ``cull_back``: back-facing triangles (seen from behind, e.g. the inside of the template
         through the eye or mouth opening) are passed through: the ray continues to the next
-        surface (up to ``max_layers`` back faces).
+        surface (up to ``max_layers`` such surfaces; a ray still on one after that: no hit).
+        ``through`` (F,) bool: triangles passed through whichever way they face (the eyes and teeth of a
+        combined scene, when the skin behind them is wanted).
         """
         d = np.asarray(directions, np.float64).reshape(-1, 3)
         o = np.asarray(origins, np.float64)
         if o.shape != (3,):     # one origin (a camera's centre) is broadcast on the device, not copied N times
             o = np.broadcast_to(o, d.shape)
         hits = self._trace_once(o, d)
-        if not cull_back:
+        if not cull_back and through is None:
             return hits
-        normals = self.face_normals()
+        normals = self._cull_normals() if cull_back else None
         offset = np.zeros(len(d))
         todo = np.arange(len(d))
         for _ in range(max_layers):
-            v = hits.valid[todo]
-            back = np.zeros(len(todo), bool)
-            back[v] = np.einsum("nd,nd->n", normals[hits.tri[todo[v]]], d[todo[v]]) > 0
+            back = self._passed(hits, todo, d, normals, through)
             if not back.any():
                 break
             todo = todo[back]
             offset[todo] += hits.t[todo] + 1e-5
             again = self._trace_once((o if o.ndim == 1 else o[todo]) + offset[todo, None] * d[todo], d[todo])
-            hits.valid[todo], hits.tri[todo], hits.bary[todo] = again.valid, again.tri, again.bary
-            hits.t[todo] = np.where(again.valid, again.t + offset[todo], np.inf)
+            again.t = np.where(again.valid, again.t + offset[todo], np.inf)
+            hits.take(todo, again)
         else:  # still behind back faces after max_layers: no hit
-            v = hits.valid[todo]
-            back = np.zeros(len(todo), bool)
-            back[v] = np.einsum("nd,nd->n", normals[hits.tri[todo[v]]], d[todo[v]]) > 0
-            bad = todo[back]
+            bad = todo[self._passed(hits, todo, d, normals, through)]
             hits.valid[bad], hits.tri[bad], hits.bary[bad], hits.t[bad] = False, -1, 0.0, np.inf
         return hits
+
+    def _passed(self, hits: Hits, rows: np.ndarray, d: np.ndarray, normals: np.ndarray | None,
+                through: np.ndarray | None) -> np.ndarray:
+        """(len(rows),) True where hit ``rows`` of rays ``d`` (N, 3) are passed through: met a face of
+        ``normals`` (:meth:`_cull_normals`; None: no culling) from behind, or a triangle ``through`` marks."""
+        v = np.flatnonzero(hits.valid[rows])
+        out = np.zeros(len(rows), bool)
+        if normals is not None:
+            face = hits.tri if hits.sub is None else hits.sub
+            out[v] = np.einsum("nd,nd->n", normals[face[rows[v]]], d[rows[v]]) > 0
+        if through is not None:
+            out[v] |= np.asarray(through, bool)[hits.tri[rows[v]]]
+        return out
+
+    def _cull_normals(self) -> np.ndarray:
+        """The unit normals back faces are judged by, one per traced primitive (``Hits.sub`` where set)."""
+        return self.face_normals()
 
     def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
         """Closest hits of rays from ``o`` ((N, 3), or (3,): one origin for all) along ``d`` (N, 3)."""
         mi, dr = self._mi, self._dr
         if len(d) == 0:
             return Hits(np.zeros(0, bool), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+        pi = self.scene.ray_intersect_preliminary(self._rays(o, d))
+        return self._read_hits(pi.t, pi.prim_uv[0], pi.prim_uv[1], pi.prim_index)
+
+    def _rays(self, o: np.ndarray, d: np.ndarray):
+        """Dr.Jit rays from ``o`` ((N, 3), or (3,): one origin for all) along ``d`` (N, 3)."""
+        mi, dr = self._mi, self._dr
         if o.ndim == 1:   # opaque, not a literal: a new camera position must not compile a new kernel
             origin = mi.Point3f(*[dr.opaque(mi.Float, float(x), len(d)) for x in o])
         else:
             origin = to_jit(mi.Point3f, o.T)
-        ray = mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
-        pi = self.scene.ray_intersect_preliminary(ray)
-        return self._read_hits(pi.t, pi.prim_uv[0], pi.prim_uv[1], pi.prim_index)
+        return mi.Ray3f(origin, to_jit(mi.Vector3f, d.T))
 
-    def _read_hits(self, t, u, v, prim) -> Hits:
+    def _read_hits(self, t, u, v, prim, *also) -> Hits:
         """:class:`Hits` read back from Dr.Jit arrays of a preliminary intersection: distance ``t`` (inf: no
-        hit), barycentrics ``u``, ``v`` of corners 1 and 2, triangle ``prim``."""
+        hit), barycentrics ``u``, ``v`` of corners 1 and 2, triangle ``prim``; ``also``: more arrays of the same
+        rays the caller reads, evaluated in the same kernel."""
         # one kernel for every output: read back one by one (is_valid included), each re-ran the ray cast
-        self._dr.eval(t, u, v, prim)
+        self._dr.eval(t, u, v, prim, *also)
         t_hit = np.asarray(t)
         valid = t_hit < np.inf           # PreliminaryIntersection.is_valid(): t is inf where nothing was hit
         u, v = np.asarray(u), np.asarray(v)
@@ -221,33 +247,33 @@ class CurvedMeshScene(MeshScene):
         self.vertices = v
         self._curved.set_vertices(self.tessellation.positions(v), update)
 
-    def trace(self, origins: np.ndarray, directions: np.ndarray, cull_back: bool = False,
-              max_layers: int = 4) -> Hits:
-        hits = self._curved.trace(origins, directions, cull_back, max_layers)
-        hits.tri, hits.bary = self.tessellation.to_coarse(hits.tri, hits.bary)
-        return hits
-
     def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
         # the sub-face → coarse-face map applied on the device, in the ray cast's kernel (in NumPy it took
         # 11 ms for a 256² × 4 frame's hits): coarse barycentrics = Σ_k b_k × the sub-face corner k's
         mi, dr = self._mi, self._dr
         if len(d) == 0:
-            return self._curved._trace_once(o, d)
+            hits = self._curved._trace_once(o, d)
+            hits.sub = hits.tri.copy()
+            return hits
         if self._maps is None:
             tess = self.tessellation
             self._maps = (to_jit(mi.UInt32, tess.parent.astype(np.uint32)),
                           to_jit(mi.Float, tess.corner_bary.reshape(-1).astype(np.float32)))
         parent, corners = self._maps
-        origin = mi.Point3f(*[dr.opaque(mi.Float, float(x), len(d)) for x in o]) if o.ndim == 1 else \
-            to_jit(mi.Point3f, o.T)
-        pi = self._curved.scene.ray_intersect_preliminary(mi.Ray3f(origin, to_jit(mi.Vector3f, d.T)))
+        pi = self._curved.scene.ray_intersect_preliminary(self._rays(o, d))
         ok = pi.t < dr.inf
         sub = pi.prim_index
         u, v = pi.prim_uv[0], pi.prim_uv[1]
         b = (1.0 - u - v, u, v)
         coarse = [sum(b[k] * dr.gather(mi.Float, corners, sub * 9 + 3 * k + j, ok) for k in range(3))
                   for j in range(3)]
-        return self._read_hits(pi.t, coarse[1], coarse[2], dr.gather(mi.UInt32, parent, sub, ok))
+        hits = self._read_hits(pi.t, coarse[1], coarse[2], dr.gather(mi.UInt32, parent, sub, ok), sub)
+        hits.sub = np.where(hits.valid, np.asarray(sub).astype(np.int64), -1)
+        return hits
+
+    def _cull_normals(self) -> np.ndarray:
+        # culled by the sub-faces' own orientation (the class docstring), not the coarse face's
+        return self._curved.face_normals()
 
     def occluded(self, points: np.ndarray, targets: np.ndarray, eps: float = 1e-4) -> np.ndarray:
         return self._curved.occluded(points, targets, eps)

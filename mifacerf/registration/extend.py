@@ -20,12 +20,13 @@ import numpy as np
 
 from ..formats.capture import Capture
 from ..formats.registration import RegisteredExpression, Registration, RegistrationWriter
+from ..geometry.boubekeur2008 import check_curved, surface_entry
 from ..geometry.footprint import centre_footprint
 from ..geometry.visibility import Visibility
 from .extensions import (check_extensions, extensions_from_template, fit_extensions_to_outlines,
                          place_in_expression)
 from .hand import read_hand_inputs
-from .register import Options, RegistrationInputError, surface_meta
+from .register import Options, RegistrationInputError
 from .texcoords import texture_coordinates
 
 #: registration-wide entries carried over unchanged
@@ -44,7 +45,6 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
     ``template.json`` carries the moved positions and the neutral's report says how far they moved.
     ``curved``: the surface renders trace (``Options.curved``; default: the old registration's ``surface``,
     else ``Options``' default); the outline fit is made against it and the new folder records it."""
-
     log = log or (lambda msg: None)
     cap = capture if isinstance(capture, Capture) else Capture(capture)
     old = Registration(registration or cap.root / "registration", capture=cap)
@@ -77,7 +77,7 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
     neutral = next((e.name for e in cap.expressions if e.category == "neutral" and e.name in names), names[0])
     if curved is None:
         curved = (old.meta.get("surface") or {}).get("curved", Options.curved)
-    Options(curved=curved)     # checked
+    curved = check_curved(curved)
     rest, refined, raw = tpl.vertices, None, tpl.to_dict()
     if silhouettes:
         rest, refined = _refined_rest(cap, old, tpl, exts, neutral, n_face, cams, vis, curved)
@@ -89,7 +89,7 @@ def extend_registration(capture, registration=None, out=None, log=None, silhouet
         for key in META_KEYS:
             if key in old.meta:
                 writer.set_meta(key, old.meta[key])
-        writer.set_meta("surface", surface_meta(curved))
+        writer.set_meta("surface", surface_entry(curved))
         N = None
         for name in [neutral] + [n for n in names if n != neutral]:
             r = old.expression(name)

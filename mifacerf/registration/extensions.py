@@ -358,11 +358,11 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     from scipy.sparse import coo_matrix, diags
     from scipy.sparse.linalg import spsolve
 
+    from ..geometry.boubekeur2008 import check_curved
     from ..geometry.meshscene import CurvedMeshScene, MeshScene
     from ..geometry.visibility import vertex_normals
 
-    if int(curved) != curved or curved < 1:
-        raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
+    curved = check_curved(curved)
     views = [(V, cameras, mattes, visible)] + [tuple(p) for p in poses]
     Vs = [np.asarray(v[0], np.float64).copy() for v in views]
     F = np.asarray(faces, np.int64)
@@ -376,7 +376,7 @@ def refine_to_silhouettes(V, faces, ids, cameras, mattes, visible=None, iteratio
     e = np.unique(np.sort(e, axis=1), axis=0)
     e = e[(free[e] >= 0).any(1)]
     report = {"vertices": int(len(ids)), "poses": len(views), "rounds": []}
-    scenes = [MeshScene(v, F) if curved == 1 else CurvedMeshScene(v, F, int(curved)) for v in Vs]
+    scenes = [MeshScene(v, F) if curved == 1 else CurvedMeshScene(v, F, curved) for v in Vs]
     search = float(options.get("search_px", 4.0))
     rays = [[MatteRays(cam, matte=matte, band_px=2 * search + 2) for cam, matte in zip(view[1], view[2])]
             for view in views]

@@ -54,6 +54,7 @@ from .consensus import consensus_snap, free_peaks, view_peaks
 from .single_view import single_view_snap
 from .snap import Views, dot_graph, predict_from_neighbours, progressive_snap, snap, two_rings, view_weights
 from .texcoords import texture_coordinates
+from ..geometry.boubekeur2008 import check_curved, surface_entry
 from ..geometry.footprint import centre_footprint
 from ..geometry.maxima import local_maxima
 from ..geometry.schaefer2006 import mls_affine
@@ -126,14 +127,7 @@ class Options:
         from ..methods import lookup
 
         lookup(DOT_FILL_METHODS, self.dot_fill, "dot fill")   # an unknown fill fails here, not after hours
-        if isinstance(self.curved, bool) or int(self.curved) != self.curved or self.curved < 1:
-            raise ValueError(f"curved must be a whole number >= 1 (1: flat triangles), got {self.curved!r}")
-
-
-def surface_meta(curved: int) -> dict:
-    """registration.json's ``surface``: the surface the registration's outlines were fitted against and renders
-    trace (the model carries it over; :class:`~mifacerf.rendering.renderer.Renderer`'s default ``curved``)."""
-    return {"method": "phong" if curved > 1 else "flat", "curved": int(curved)}
+        check_curved(self.curved)
 
 
 @dataclass
@@ -1013,7 +1007,7 @@ def register_capture(capture, out=None, expressions=None, force: bool = False, o
     reg = Registrar(cap, out, options, log, fresh=force and not expressions)
     try:
         reg.writer.set_meta("options", asdict(reg.opt))
-        reg.writer.set_meta("surface", surface_meta(reg.opt.curved))
+        reg.writer.set_meta("surface", surface_entry(reg.opt.curved))
         reg.writer.set_meta("hand_input_problems", reg.hand.problems)
         for n in cap.expression_names:
             if reg.writer.done(n) and n not in redo:

@@ -25,6 +25,7 @@ from ..execution import Executor
 from ..formats.capture import Capture
 from ..formats.registration import Registration, RegistrationError
 from ..registration.extensions import check_extensions, extensions_from_template
+from ..geometry.boubekeur2008 import surface_entry
 from ..geometry.meshscene import MeshScene
 from ..validation import check_field
 from .parts import build_part_fields, choose_references, part_sources, part_visibility
@@ -200,7 +201,7 @@ def build_model(capture: str | Path, out: str | Path, registration: str | Path |
         writer.extra["part_sources"] = sources
         writer.extra["parts"] = build_part_fields(writer, reg, reg.template, t["triangles"], cams, sources,
                                                   cap.rig.lights.directions)
-        writer.extra["surface"] = dict(reg.meta.get("surface") or {"method": "flat", "curved": 1})
+        writer.extra["surface"] = dict(reg.meta.get("surface") or surface_entry(1))
         writer.extra["source"] = {"capture": str(Path(capture).resolve()),
                                   "registration": str(reg.root.resolve())}
         return writer.finish(blend)

@@ -34,6 +34,7 @@ from .chunks import FramePlan, plan_frame
 from .frame import CHORD_OFFSET, ChordOffset, LitFrame, facing_weights, resolve_pixels
 from .lighting import RotatedLightBasis
 from .relight import DeviceLighting
+from ..geometry.boubekeur2008 import check_curved
 from ..geometry.meshscene import CurvedMeshScene, MeshScene
 from ..geometry.rigid import apply
 from ..blas import single_threaded_blas
@@ -146,11 +147,7 @@ class Renderer:
         # model's: its extension outlines were fitted against that surface (registration.extensions), and
         # another one misplaces them by the chords' sag (docs/rendering.md, "Phong surface")
         exts = model.template.get("extensions") or {}
-        if curved is None:
-            curved = int(getattr(model, "surface", {}).get("curved", 1))
-        if isinstance(curved, bool) or int(curved) != curved or curved < 1:
-            raise ValueError(f"curved must be a whole number >= 1 (1: flat), got {curved!r}")
-        self.curved = int(curved)
+        self.curved = check_curved(model.surface["curved"] if curved is None else curved)
         self._scene = MeshScene(neutral, model.triangles) if self.curved == 1 else \
             CurvedMeshScene(neutral, model.triangles, self.curved)
         meshes = part_meshes(model.template) if model.references else {}
@@ -505,21 +502,13 @@ class Renderer:
         if part.size == 0:
             return
         # the skin behind each part hit, traced in the combined scene (already posed: no second acceleration
-        # structure to rebuild, 2-14 ms a frame) past the parts' own surfaces (an eye: in and out)
+        # structure to rebuild, 2-14 ms a frame) through the parts' own surfaces (an eye: in and out)
         scene = self._combined.scene
         o, d = camera.pixel_rays(uv[part]) if directions is None else (camera.centre, directions[part])
         start = hits.t[part] + 1e-5
-        behind = scene.trace(o + start[:, None] * d, d, cull_back=False)
-        for _ in range(PART_LAYERS):
-            through = np.flatnonzero(behind.valid & (behind.tri >= n_skin_tri))
-            if not through.size:
-                break
-            start[through] += behind.t[through] + 1e-5
-            again = scene.trace(np.broadcast_to(o, (len(part), 3))[through] + start[through, None] * d[through],
-                                d[through], cull_back=False)
-            behind.valid[through], behind.tri[through] = again.valid, again.tri
-            behind.bary[through], behind.t[through] = again.bary, again.t
-        ok = behind.valid & (behind.tri < n_skin_tri)
+        parts = np.arange(len(scene.faces)) >= n_skin_tri
+        behind = scene.trace(o + start[:, None] * d, d, max_layers=PART_LAYERS, through=parts)
+        ok = behind.valid
         front = np.zeros(len(part), bool)
         front[ok] = np.einsum("nd,nd->n", scene.face_normals()[behind.tri[ok]], d[ok]) < 0
         sel = part[front]
