@@ -111,7 +111,7 @@ class FaceRFBSDF(mi.BSDF):
             from mifacerf.rendering.compression import compression_method
 
             compression_method(self.fields.get("method", "exact"))
-        self.n_skin_triangles = None
+        self.n_skin_faces = None
         self.parts = None
         self.with_parts = bool(props["parts"]) if "parts" in props else True
         if "visibility_rule" in props:
@@ -154,7 +154,7 @@ class FaceRFBSDF(mi.BSDF):
 
         self.shape = shape
         pose = shape.pose_state
-        self.n_skin_triangles = shape.geometry.n_skin_triangles
+        self.n_skin_faces = shape.geometry.n_skin_faces
         if self.state is None or self.state.model is not shape.face.model:
             self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis,
                                        self_visibility=self.self_visibility, **self.fields)
@@ -185,14 +185,23 @@ class FaceRFBSDF(mi.BSDF):
         """(hit on an eye (Bool), its part index): eye hits draw a share :data:`P_CORNEA` from the cornea lobe."""
         if self.parts is None:
             return mi.Bool(False), mi.UInt32(0)
-        on_part = mi.Bool(active) & (si.prim_index >= self.n_skin_triangles)
+        on_part = mi.Bool(active) & (si.prim_index >= self.n_skin_faces)
         part = dr.gather(mi.UInt32, self.label, si.prim_index, on_part) - 1
         return on_part & (part < 2), part
+
+    def _skin(self, si, active=True):
+        """(template triangle, barycentrics or None) of skin hits: on a ``facerf_face`` shape through its map
+        (its Phong surface's sub-faces to the template's triangles); on a plain mesh of the target its own
+        triangle (barycentrics from the point)."""
+        if self.shape is None or self.n_skin_faces is None:
+            return si.prim_index, None
+        return self.shape.coarse_hit(si.prim_index, si.p, active)
 
     def _pdf_local(self, si, wo, active=True):
         pdf = self._pdf_cosine(wo)
         if self._by_reflectance():
-            v = self.state.nearest_vertex(si.prim_index, si.p, active)
+            tri, bary = self._skin(si, active)
+            v = self.state.nearest_vertex(tri, si.p, bary, active)
             light = self.state.sampling.pdf(v, si.to_world(wo), active)
             pdf = P_MIX_COSINE * pdf + (1 - P_MIX_COSINE) * light
         if self.parts is not None:
@@ -215,7 +224,8 @@ class FaceRFBSDF(mi.BSDF):
         wo_uni = mi.warp.square_to_uniform_sphere(sample2)
         wo = dr.select(u < P_COSINE, wo_cos, wo_uni)
         if self._by_reflectance():
-            v = self.state.nearest_vertex(si.prim_index, si.p, active)
+            tri, bary = self._skin(si, active)
+            v = self.state.nearest_vertex(tri, si.p, bary, active)
             wo = dr.select(by_light, si.to_local(self.state.sampling.sample(v, u, sample2, active)), wo)
         if self.parts is not None:
             wo_lobe = self.parts.sample_cornea(part, si.p, si.to_world(si.wi), sample2, lobe)
@@ -246,10 +256,11 @@ class FaceRFBSDF(mi.BSDF):
         # mesh from inside gets nothing (else light leaked through the head to it: +1.6 % under path, toy model)
         ok = mi.Bool(active) & (dr.squared_norm(view) > 0.5) & (dr.squared_norm(light) > 0.5) & (si.wi.z > 0)
         on_part = mi.Bool(False)
-        if self.n_skin_triangles is not None:   # on a facerf_face shape: its skin triangles come first
-            on_part = ok & (si.prim_index >= self.n_skin_triangles)
-            ok &= si.prim_index < self.n_skin_triangles
-        value = self.state.evaluate(si.prim_index, si.p, view, light, ok)
+        if self.n_skin_faces is not None:   # on a facerf_face shape: its skin triangles come first
+            on_part = ok & (si.prim_index >= self.n_skin_faces)
+            ok &= si.prim_index < self.n_skin_faces
+        tri, bary = self._skin(si, ok)
+        value = self.state.evaluate(tri, si.p, view, light, ok, bary=bary)
         if self.parts is not None:   # eyes, teeth and mouth interior (labelled triangles after the skin's)
             part = dr.gather(mi.UInt32, self.label, si.prim_index, on_part) - 1
             diffuse = self.parts.evaluate(part, si.p, view, light, on_part)

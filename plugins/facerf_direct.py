@@ -51,7 +51,7 @@ def _faces(scene):
         state = getattr(s.bsdf(), "state", None) if isinstance(s, FaceShape) else None
         near = float(getattr(state, "near_occluders", 0.0) or 0.0)
         if near > 0:
-            out.append((s, s.geometry.n_skin_triangles, near))
+            out.append((s, s.geometry.n_skin_faces, near))
     return out
 
 

@@ -257,8 +257,8 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         # a part poking out through the skin in front of the camera shows the skin (parts.py)
         on_face, tri, p_face, on_part, part = skin_in_front_of_parts(scene, ray, si, self.face_shape, self._label,
                                                                      self.n_parts, active)
-        tri = dr.select(on_face, tri, 0)
-        bary = self.frame.barycentric(tri, p_face)
+        tri, b = self.face_shape.coarse_hit(tri, p_face, on_face)   # the template triangle (Phong: of its sub-face)
+        bary = mi.Vector3f(*b)
         colour, covered, _ = self.frame.shade(tri, bary, on_face)
         if self.part_frame is not None:
             M = [dr.gather(mi.Float, self._part_inv, part * 16 + e, on_part) for e in range(12)]

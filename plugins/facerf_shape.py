@@ -17,6 +17,10 @@ shape, so changing it through ``mi.traverse`` re-poses all three without reloadi
      - transform — the head's rigid pose in the scene (default identity)
    * - parts
      - boolean — include eyes, teeth and mouth interior (default true; models without them have none)
+   * - curved
+     - integer — the skin's Phong level (the template's triangles split ``curved²`` ways onto the Phong
+       surface; 1: the flat triangles). Default: the model's own surface (``surface`` in model.json), the
+       one the Python renderer traces and the registration fitted the head's outline against
    * - (bsdf)
      - a ``facerf_bsdf`` (no parameters needed: it takes the model and pose from this shape), or any BSDF
 
@@ -49,6 +53,7 @@ mi = ensure_variant()
 import drjit as dr  # noqa: E402
 
 from mifacerf.jitarrays import to_jit  # noqa: E402
+from mifacerf.rendering.jitgeom import barycentric  # noqa: E402
 
 
 def resolve_path(path: str) -> str:
@@ -71,7 +76,11 @@ class FaceShape(mi.Mesh):
         if "model" not in props:
             raise ValueError("facerf_face: the 'model' parameter (a model folder) is required")
         self.face = open_model(resolve_path(props["model"]))
-        self.geometry = g = FaceGeometry(self.face, bool(props.get("parts", True)))
+        try:
+            self.geometry = g = FaceGeometry(self.face, bool(props.get("parts", True)),
+                                             props["curved"] if "curved" in props else None)
+        except ValueError as exc:
+            raise ValueError(f"facerf_face: parameter 'curved': {exc}") from None
         M = np.eye(4)
         if "to_world" in props:
             M = np.asarray(props.get("to_world").matrix, np.float64).reshape(4, 4)
@@ -124,11 +133,33 @@ class FaceShape(mi.Mesh):
         """Per triangle: 0 skin, k + 1 the part ``PARTS[k]``."""
         return self.geometry.label
 
+    def coarse_hit(self, prim, p, active=True):
+        """Skin hits on this mesh → (template triangle (UInt32), barycentrics there [3 Float]): ``prim`` the mesh
+        triangle (``si.prim_index``; skin while ``< geometry.n_skin_faces``), ``p`` the hit point (Point3f).
+        On the Phong surface a skin face is one of ``curved²`` in its template triangle (the map of
+        :meth:`FaceGeometry.to_coarse`, on the device); flat, the triangle itself."""
+        active = mi.Bool(active) & (mi.UInt32(prim) < self.geometry.n_skin_faces)
+        prim = dr.select(active, mi.UInt32(prim), 0)
+        b = barycentric(self._faces, self._vertices, prim, p)
+        if self._parent is None:
+            return prim, b
+        parent, corners = self._parent, self._corners
+        tri = dr.gather(mi.UInt32, parent, prim, active)
+        return tri, [sum(b[k] * dr.gather(mi.Float, corners, prim * 9 + 3 * k + j, active) for k in range(3))
+                     for j in range(3)]
+
     def _set_buffers(self, pose, faces: bool = False) -> None:
         params = mi.traverse(self)
-        params["vertex_positions"] = to_jit(mi.Float, pose.vertices.astype(np.float32).reshape(-1))
+        self._vertices = to_jit(mi.Float, pose.vertices.astype(np.float32).reshape(-1))
+        params["vertex_positions"] = self._vertices
         if faces:
-            params["faces"] = to_jit(mi.UInt32, self.geometry.triangles.astype(np.uint32).reshape(-1))
+            g = self.geometry
+            self._faces = to_jit(mi.UInt32, g.triangles.astype(np.uint32).reshape(-1))
+            params["faces"] = self._faces
+            self._parent = self._corners = None
+            if g.corner_bary is not None:
+                self._parent = to_jit(mi.UInt32, g.parent.astype(np.uint32))
+                self._corners = to_jit(mi.Float, np.asarray(g.corner_bary, np.float32).reshape(-1))
         params.update()
 
     def traverse(self, callback):
@@ -176,7 +207,7 @@ class FaceShape(mi.Mesh):
     def to_string(self):
         m = self.face.model
         return (f"FaceShape[model={str(m.root)!r}, vertices={self.geometry.n_vertices}, "
-                f"parts={self.geometry.part_names}]")
+                f"curved={self.geometry.curved}, parts={self.geometry.part_names}]")
 
 
 mi.register_shape("facerf_face", lambda props: FaceShape(props))

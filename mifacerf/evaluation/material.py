@@ -514,7 +514,8 @@ def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) 
     si = scene.ray_intersect(ray)
     tri = np.asarray(si.prim_index).astype(np.int64)
     skin = np.asarray(si.is_valid()) & (np.asarray(si.shape) == np.asarray(mi.ShapePtr(face))) \
-        & (tri < face.geometry.n_skin_triangles)
+        & (tri < face.geometry.n_skin_faces)
+    tri = face.geometry.parent[np.where(skin, tri, 0)]   # the template's triangle (of a Phong sub-face)
     X, F = face.pose_state.target, model.triangles
     t = np.where(skin, tri, 0)
     ng = np.cross(X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 0]])

@@ -139,6 +139,16 @@ class ChordOffset:
         return V + (self.k * depth)[:, None] * N
 
 
+def traced_offset(model, curved: int) -> ChordOffset:
+    """The :class:`ChordOffset` a frame of ``model`` traces on surface ``curved`` (a Phong level): a whole-head
+    template's face vertices moved out by the chords' sag when flat (its extensions fixed); the identity on
+    the Phong surface, or for a face-only template, which traces its registered mesh as it is."""
+    exts = model.template.get("extensions") or {}
+    ext = [v for e in exts.values() for v in e.get("vertices", [])]
+    k = CHORD_OFFSET if exts and curved == 1 else 0.0
+    return ChordOffset(model.triangles, model.n_vertices, fixed=ext, k=k)
+
+
 def facing_weights(expression_weights: np.ndarray, target: np.ndarray, triangles: np.ndarray, centre) -> np.ndarray:
     """A frame's (T, S) expression weights with the rows of vertices the camera at ``centre`` cannot show set to
     0: vertices of no target triangle that faces the camera (a render's trace passes back faces, so every hit

@@ -335,9 +335,11 @@ class MaterialState:
         return reconstruct(self.model.compressed_field(s, c, self.rank, self.method), self.model.light_directions)
 
     # ------------------------------------------------------------------ kernel
-    def evaluate(self, tri, p, view, light, active=True):
+    def evaluate(self, tri, p, view, light, active=True, bary=None):
         """Radiance per unit irradiance (Color3f) for hits (triangle ``tri``, point ``p``), unit world
-        directions ``view`` (towards the viewer) and ``light`` (towards the light).
+        directions ``view`` (towards the viewer) and ``light`` (towards the light). ``bary``: the hits'
+        barycentrics in ``tri`` ([3 Float]) where the caller has them (a hit on a finer surface over the
+        target, e.g. ``facerf_face``'s Phong sub-faces); else they are those of ``p`` in the target triangle.
 
         Texels are chosen as the exact path chooses them (:meth:`.frame.LitFrame.shade`): per camera the 2x2
         bilinear taps whose seen surface lies within :data:`DEPTH_TOLERANCE` of the hit (a texel at camera
@@ -351,7 +353,7 @@ class MaterialState:
         active = mi.Bool(active)
         active &= mi.UInt32(tri) < self.n_triangles
         tri = dr.select(active, mi.UInt32(tri), 0)   # a part's triangle (index past the skin's) is never read
-        b = barycentric(self.triangles, self.target, tri, p)
+        b = barycentric(self.triangles, self.target, tri, p) if bary is None else list(bary)
         vid = [dr.gather(UInt32, self.triangles, tri * 3 + k, active) for k in range(3)]
         n = dr.width(tri) if dr.width(tri) > 1 else dr.width(p.x)
         K, C, T, L3 = self.K, self.C, len(self.model.vertices[0]), self.n_lights * 3
@@ -472,13 +474,14 @@ class MaterialState:
         inv = dr.select(pick[3] > 1e-9, dr.rcp(pick[3]), 0.0)
         return mi.Color3f(pick[0] * inv, pick[1] * inv, pick[2] * inv)
 
-    def nearest_vertex(self, tri, p, active=True):
-        """The target vertex (UInt32) nearest to each hit (the largest barycentric of its triangle)."""
+    def nearest_vertex(self, tri, p=None, bary=None, active=True):
+        """The target vertex (UInt32) nearest to each hit (the largest barycentric of its triangle): hits as
+        (triangle ``tri``, point ``p``) or (``tri``, barycentrics ``bary``)."""
         import drjit as dr
 
         mi = self.mi
         active = mi.Bool(active) & (mi.UInt32(tri) < self.n_triangles)   # a part's triangle: none of the skin's
         tri = dr.select(active, mi.UInt32(tri), 0)
-        b = barycentric(self.triangles, self.target, tri, p)
+        b = barycentric(self.triangles, self.target, tri, p) if bary is None else bary
         k = dr.select((b[0] >= b[1]) & (b[0] >= b[2]), 0, dr.select(b[1] >= b[2], 1, 2))
         return dr.gather(mi.UInt32, self.triangles, tri * 3 + mi.UInt32(k), active)

@@ -31,7 +31,7 @@ from ..methods import lookup
 from ..jitarrays import from_jit, to_jit
 from ..variant import ensure_plugins, ensure_variant
 from .chunks import FramePlan, plan_frame
-from .frame import CHORD_OFFSET, ChordOffset, LitFrame, facing_weights, resolve_pixels
+from .frame import LitFrame, facing_weights, resolve_pixels, traced_offset
 from .lighting import RotatedLightBasis
 from .relight import DeviceLighting
 from ..geometry.boubekeur2008 import check_curved
@@ -146,7 +146,6 @@ class Renderer:
         # edge) instead of its flat chords, which lie inside a smooth subject's skin. The default is the
         # model's: its extension outlines were fitted against that surface (registration.extensions), and
         # another one misplaces them by the chords' sag (docs/rendering.md, "Phong surface")
-        exts = model.template.get("extensions") or {}
         self.curved = check_curved(model.surface["curved"] if curved is None else curved)
         self._scene = MeshScene(neutral, model.triangles) if self.curved == 1 else \
             CurvedMeshScene(neutral, model.triangles, self.curved)
@@ -155,9 +154,7 @@ class Renderer:
         self._margins = margin_ids(model.template)
         # the traced target when flat: a whole-head template's face vertices moved out by the chords' sag
         # (frame.ChordOffset); a face-only template traces its registered mesh as it is
-        ext = [v for e in exts.values() for v in e.get("vertices", [])]
-        k = CHORD_OFFSET if exts and self.curved == 1 else 0.0
-        self._traced = ChordOffset(model.triangles, model.n_vertices, fixed=ext, k=k)
+        self._traced = traced_offset(model, self.curved)
         self._bases: dict[int, tuple[Environment, RotatedLightBasis]] = {}
         self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}

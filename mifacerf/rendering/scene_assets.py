@@ -7,11 +7,18 @@ vertices, eye centres, teeth and head transforms of each expression; ``model.jso
 template with its part meshes). Nothing is written to the model folder or to a cache, so a
 model built before scene files existed works unchanged.
 
-One mesh carries the skin and the parts: the template's triangles first (triangle ``i < F`` is
-template triangle ``i``), then each part of :data:`.parts.PARTS` the template has, labelled per
-triangle (:attr:`FaceGeometry.label`: 0 skin, ``k + 1`` part ``PARTS[k]``). The vertex and
-triangle counts are fixed for a model, so an animation changes vertex positions only: a part a
-pose lacks collapses onto the skin's centre (zero-area triangles, never hit).
+One mesh carries the skin and the parts: the skin's triangles first, then each part of
+:data:`.parts.PARTS` the template has, labelled per triangle (:attr:`FaceGeometry.label`: 0 skin,
+``k + 1`` part ``PARTS[k]``). The skin is the surface the Python renderer traces for the model
+(:attr:`FaceGeometry.curved`, by default the model's own, :attr:`Model.surface`): at a Phong level
+``n`` > 1 the template's triangles split ``n²`` ways onto the Phong surface
+(:mod:`mifacerf.geometry.boubekeur2008`; the surface the registration fitted the extensions' outlines
+against), at level 1 the template's triangles themselves, moved out by the chords' sag on a whole-head
+template (:func:`.frame.traced_offset`). Either way a skin hit maps back to a template triangle and its
+barycentrics (:meth:`FaceGeometry.to_coarse`; on the device, ``facerf_face``'s ``coarse_hit``), where
+the fields are shaded. The vertex and triangle counts are fixed for a model, so an animation changes
+vertex positions only: a part a pose lacks collapses onto the skin's centre (zero-area triangles,
+never hit).
 
 A pose (:meth:`FaceGeometry.pose`) is an expression — a name, ``"name=w,..."``, a dict or a
 weight vector in the model's expression order (a linear blend, paper §4.3) — or a target mesh in
@@ -35,7 +42,8 @@ from .parts import PARTS, part_meshes
 class FacePose:
     """One pose of a face in a scene: ``target`` (T, 3) posed skin vertices, ``weights`` (T, S) expression
     weights, ``parts`` {part: 4x4 rest → world, posed}, ``vertices`` (V, 3) of the whole mesh,
-    ``expression`` (S,) the blend weights (None for a target mesh)."""
+    ``expression`` (S,) the blend weights (None for a target mesh). ``target`` is the template's skin (what is
+    shaded); the first vertices of ``vertices`` are the traced skin's (:attr:`FaceGeometry.n_skin_mesh_vertices`)."""
 
     target: np.ndarray
     weights: np.ndarray
@@ -77,20 +85,40 @@ def rigid_pose(matrix, name: str = "to_world") -> np.ndarray:
 
 class FaceGeometry:
     """The scene mesh of a face model (see the module docstring). ``face``: a :class:`~.api.FaceModel`;
-    ``parts``: include the eyes, teeth and mouth interior (models without them have none)."""
+    ``parts``: include the eyes, teeth and mouth interior (models without them have none); ``curved``: the
+    skin's Phong level (1: flat triangles; None: the model's own surface).
 
-    def __init__(self, face, parts: bool = True):
+    Counts: ``n_skin_vertices`` / ``n_skin_triangles`` the template's (T, F); ``n_skin_mesh_vertices`` /
+    ``n_skin_faces`` the traced skin's in the mesh (``n_skin_faces = F × curved²``; mesh triangle ``i`` is
+    skin while ``i < n_skin_faces``); ``parent`` (n_skin_faces,) each skin face's template triangle and
+    ``corner_bary`` (n_skin_faces, 3, 3) its corners' barycentrics there (None when flat: the identity)."""
+
+    def __init__(self, face, parts: bool = True, curved: int | None = None):
+        from ..geometry.boubekeur2008 import PhongTessellation, check_curved
+        from .frame import traced_offset
+
         self.face = face
         m = face.model
         self.n_skin_vertices = m.n_vertices
         self.n_skin_triangles = len(m.triangles)
+        self.curved = check_curved(m.surface["curved"] if curved is None else curved)
+        self.offset = traced_offset(m, self.curved)
+        F = np.asarray(m.triangles, np.int64)
+        if self.curved > 1:
+            self.tessellation = t = PhongTessellation(F, m.n_vertices, self.curved)
+            skin, self.parent, self.corner_bary, n_skin = t.faces, t.parent, t.corner_bary, t.n_sub
+        else:
+            self.tessellation = None
+            skin, self.parent, self.corner_bary, n_skin = F, np.arange(len(F)), None, m.n_vertices
+        self.n_skin_mesh_vertices = n_skin
+        self.n_skin_faces = len(skin)
         meshes = part_meshes(m.template) if (parts and m.references) else {}
         self.part_names = [p for p in PARTS if p in meshes]
         self.rest = {p: meshes[p][0] for p in self.part_names}
-        tris = [np.asarray(m.triangles, np.int64)]
-        label = [np.zeros(len(m.triangles), np.uint32)]
+        tris = [np.asarray(skin, np.int64)]
+        label = [np.zeros(len(skin), np.uint32)]
         self.offsets = {}
-        off = m.n_vertices
+        off = n_skin
         for p in self.part_names:
             v, f = meshes[p]
             self.offsets[p] = (off, len(v))
@@ -100,6 +128,16 @@ class FaceGeometry:
         self.n_vertices = off
         self.triangles = np.concatenate(tris)
         self.label = np.concatenate(label)
+
+    def to_coarse(self, tri, bary) -> tuple[np.ndarray, np.ndarray]:
+        """Mesh-triangle hits on the skin → (template triangles (N,), barycentrics there (N, 3)); ``tri`` (N,) mesh
+        triangles (skin: ``< n_skin_faces``; anything else gives −1 and zeros), ``bary`` (N, 3) in them."""
+        tri = np.asarray(tri, np.int64)
+        bary = np.asarray(bary, np.float64).reshape(len(tri), 3)
+        ok = (tri >= 0) & (tri < self.n_skin_faces)
+        if self.tessellation is None:
+            return np.where(ok, tri, -1), np.where(ok[:, None], bary, 0.0)
+        return self.tessellation.to_coarse(np.where(ok, tri, -1), bary)
 
     # ------------------------------------------------------------------ input
     def expression_vector(self, spec) -> np.ndarray:
@@ -149,7 +187,9 @@ class FaceGeometry:
         target = apply(M, local)
         posed = {p: M @ T for p, T in parts.items()}
         vertices = np.empty((self.n_vertices, 3))
-        vertices[: self.n_skin_vertices] = target
+        traced = self.offset(target)
+        vertices[: self.n_skin_mesh_vertices] = traced if self.tessellation is None else \
+            self.tessellation.positions(traced)
         centre = target.mean(axis=0)
         for p in self.part_names:
             o, n = self.offsets[p]
