@@ -39,7 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..jitarrays import to_jit
-from .jitgeom import CAM_PARAMS, barycentric, bilinear_taps, camera_params, project
+from .jitgeom import CAM_PARAMS, bilinear_taps, camera_params, project
 from ..variant import ensure_variant
 
 #: the fill's smoothing (Gaussian sigma, a fraction of the image's larger side; :func:`resolve_pixels`)
@@ -353,10 +353,6 @@ class LitFrame:
         self.chunk_list = to_jit(mi.UInt32, np.append(np.nonzero(per_tri)[1], 0).astype(np.uint32))
 
     # ------------------------------------------------------------------ kernel
-    def barycentric(self, tri, p):
-        """Barycentrics (Vector3f) of world points ``p`` (Point3f) in target triangles ``tri`` (UInt32)."""
-        return self.mi.Vector3f(*barycentric(self.triangles, self.target, tri, p))
-
     def shade(self, tri, bary, active=True):
         """Shade hits: ``tri`` (UInt32), ``bary`` (Vector3f, b0 b1 b2) → (Color3f, covered, fell_back).
 

@@ -82,10 +82,10 @@ def _kernels_compiled(history) -> int:
     return sum(1 for k in history if k.get("type") == dr.KernelType.JIT and not k.get("cache_hit", False))
 
 
-@pytest.mark.parametrize("integrator", ["facerf", "direct"])
-def test_animation_through_traverse_reuses_compiled_kernels(toy_model, plugins, integrator):
+@pytest.mark.parametrize("integrator,curved", [("facerf", 1), ("direct", 1), ("direct", 3)])
+def test_animation_through_traverse_reuses_compiled_kernels(toy_model, plugins, integrator, curved):
     """Expression weights, a target mesh and the head's pose set through mi.traverse; every frame after the
-    first launches kernels but compiles none (Dr.Jit's kernel history)."""
+    first launches kernels but compiles none (Dr.Jit's kernel history), on the flat and the Phong skin."""
     import drjit as dr
 
     mi = plugins
@@ -95,7 +95,8 @@ def test_animation_through_traverse_reuses_compiled_kernels(toy_model, plugins, 
     cam = _camera(24)
     scene = mi.load_dict({"type": "scene", "integrator": {"type": integrator}, "sensor": sensor_dict(cam, spp=2),
                           "sky": {"type": "constant", "radiance": 1.0},
-                          "face": {"type": "facerf_face", "model": str(m.root), "bsdf": {"type": "facerf_bsdf"}}})
+                          "face": {"type": "facerf_face", "model": str(m.root), "curved": curved,
+                                   "bsdf": {"type": "facerf_bsdf"}}})
     params = mi.traverse(scene)
     assert {"face.expression", "face.target", "face.to_world"} <= set(params.keys())
     shape = [s for s in scene.shapes() if s.id() == "face"][0]
