@@ -53,6 +53,7 @@ mi = ensure_variant()
 import drjit as dr  # noqa: E402
 
 from mifacerf.jitarrays import to_jit  # noqa: E402
+from mifacerf.geometry.boubekeur2008 import to_coarse_device  # noqa: E402
 from mifacerf.rendering.jitgeom import barycentric  # noqa: E402
 
 
@@ -136,17 +137,14 @@ class FaceShape(mi.Mesh):
     def coarse_hit(self, prim, p, active=True):
         """Skin hits on this mesh → (template triangle (UInt32), barycentrics there [3 Float]): ``prim`` the mesh
         triangle (``si.prim_index``; skin while ``< geometry.n_skin_faces``), ``p`` the hit point (Point3f).
-        On the Phong surface a skin face is one of ``curved²`` in its template triangle (the map of
-        :meth:`FaceGeometry.to_coarse`, on the device); flat, the triangle itself."""
+        On the Phong surface a skin face is one of ``curved²`` in its template triangle
+        (:func:`~mifacerf.geometry.boubekeur2008.to_coarse_device`); flat, the triangle itself."""
         active = mi.Bool(active) & (mi.UInt32(prim) < self.geometry.n_skin_faces)
         prim = dr.select(active, mi.UInt32(prim), 0)
         b = barycentric(self._faces, self._vertices, prim, p)
-        if self._parent is None:
+        if self._maps is None:
             return prim, b
-        parent, corners = self._parent, self._corners
-        tri = dr.gather(mi.UInt32, parent, prim, active)
-        return tri, [sum(b[k] * dr.gather(mi.Float, corners, prim * 9 + 3 * k + j, active) for k in range(3))
-                     for j in range(3)]
+        return to_coarse_device(mi, self._maps, prim, b, active)
 
     def _set_buffers(self, pose, faces: bool = False) -> None:
         params = mi.traverse(self)
@@ -156,10 +154,7 @@ class FaceShape(mi.Mesh):
             g = self.geometry
             self._faces = to_jit(mi.UInt32, g.triangles.astype(np.uint32).reshape(-1))
             params["faces"] = self._faces
-            self._parent = self._corners = None
-            if g.corner_bary is not None:
-                self._parent = to_jit(mi.UInt32, g.parent.astype(np.uint32))
-                self._corners = to_jit(mi.Float, np.asarray(g.corner_bary, np.float32).reshape(-1))
+            self._maps = None if g.tessellation is None else g.tessellation.device_map(mi)
         params.update()
 
     def traverse(self, callback):

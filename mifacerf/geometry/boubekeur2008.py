@@ -147,6 +147,26 @@ class PhongTessellation:
         out_bary[ok] = np.einsum("nk,nkd->nd", bary[ok], self.corner_bary[tri[ok]])
         return out_tri, out_bary
 
+    def device_map(self, mi) -> tuple:
+        """``parent`` (UInt32) and ``corner_bary`` (Float, 9 per sub-face) as device arrays, for
+        :func:`to_coarse_device`."""
+        from ..jitarrays import to_jit
+
+        return (to_jit(mi.UInt32, self.parent.astype(np.uint32)),
+                to_jit(mi.Float, self.corner_bary.reshape(-1).astype(np.float32)))
+
+
+def to_coarse_device(mi, maps, sub, b, active=True):
+    """:meth:`PhongTessellation.to_coarse` on the device, inside a ray cast's kernel: sub-face hits ``sub``
+    (UInt32) with barycentrics ``b`` [3 Float] → (coarse faces (UInt32), their barycentrics [3 Float]), the
+    latter Σ_k b_k × sub-face corner k's; ``maps`` from :meth:`PhongTessellation.device_map`."""
+    import drjit as dr
+
+    parent, corners = maps
+    tri = dr.gather(mi.UInt32, parent, sub, active)
+    return tri, [sum(b[k] * dr.gather(mi.Float, corners, sub * 9 + 3 * k + j, active) for k in range(3))
+                 for j in range(3)]
+
 
 def check_curved(curved) -> int:
     """``curved`` (a Phong level: splits per edge, 1 the flat triangles) as an int; ``ValueError`` naming it
@@ -164,4 +184,4 @@ def surface_entry(curved: int = 1) -> dict:
     return {"method": "phong" if curved > 1 else "flat", "curved": curved}
 
 
-__all__ = ["ALPHA", "PhongTessellation", "check_curved", "surface_entry"]
+__all__ = ["ALPHA", "PhongTessellation", "check_curved", "surface_entry", "to_coarse_device"]

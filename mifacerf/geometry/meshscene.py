@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..jitarrays import to_jit
+from .boubekeur2008 import to_coarse_device
 from ..camera import Camera, stratified_pixel_samples
 from ..variant import ensure_variant
 
@@ -256,18 +257,13 @@ class CurvedMeshScene(MeshScene):
             hits.sub = hits.tri.copy()
             return hits
         if self._maps is None:
-            tess = self.tessellation
-            self._maps = (to_jit(mi.UInt32, tess.parent.astype(np.uint32)),
-                          to_jit(mi.Float, tess.corner_bary.reshape(-1).astype(np.float32)))
-        parent, corners = self._maps
+            self._maps = self.tessellation.device_map(mi)
         pi = self._curved.scene.ray_intersect_preliminary(self._rays(o, d))
         ok = pi.t < dr.inf
         sub = pi.prim_index
         u, v = pi.prim_uv[0], pi.prim_uv[1]
-        b = (1.0 - u - v, u, v)
-        coarse = [sum(b[k] * dr.gather(mi.Float, corners, sub * 9 + 3 * k + j, ok) for k in range(3))
-                  for j in range(3)]
-        hits = self._read_hits(pi.t, coarse[1], coarse[2], dr.gather(mi.UInt32, parent, sub, ok), sub)
+        tri, coarse = to_coarse_device(mi, self._maps, sub, (1.0 - u - v, u, v), ok)
+        hits = self._read_hits(pi.t, coarse[1], coarse[2], tri, sub)
         hits.sub = np.where(hits.valid, np.asarray(sub).astype(np.int64), -1)
         return hits
 

@@ -15,8 +15,8 @@ One mesh carries the skin and the parts: the skin's triangles first, then each p
 (:mod:`mifacerf.geometry.boubekeur2008`; the surface the registration fitted the extensions' outlines
 against), at level 1 the template's triangles themselves, moved out by the chords' sag on a whole-head
 template (:func:`.frame.traced_offset`). Either way a skin hit maps back to a template triangle and its
-barycentrics (:meth:`FaceGeometry.to_coarse`; on the device, ``facerf_face``'s ``coarse_hit``), where
-the fields are shaded. The vertex and triangle counts are fixed for a model, so an animation changes
+barycentrics (:attr:`FaceGeometry.parent` and its tessellation's map; on the device, ``facerf_face``'s
+``coarse_hit``), where the fields are shaded. The vertex and triangle counts are fixed for a model, so an animation changes
 vertex positions only: a part a pose lacks collapses onto the skin's centre (zero-area triangles,
 never hit).
 
@@ -90,8 +90,9 @@ class FaceGeometry:
 
     Counts: ``n_skin_vertices`` / ``n_skin_triangles`` the template's (T, F); ``n_skin_mesh_vertices`` /
     ``n_skin_faces`` the traced skin's in the mesh (``n_skin_faces = F × curved²``; mesh triangle ``i`` is
-    skin while ``i < n_skin_faces``); ``parent`` (n_skin_faces,) each skin face's template triangle and
-    ``corner_bary`` (n_skin_faces, 3, 3) its corners' barycentrics there (None when flat: the identity)."""
+    skin while ``i < n_skin_faces``); ``parent`` (n_skin_faces,) each skin face's template triangle;
+    ``tessellation`` the :class:`~mifacerf.geometry.boubekeur2008.PhongTessellation` (its ``corner_bary``:
+    where in that triangle a sub-face lies), None when flat."""
 
     def __init__(self, face, parts: bool = True, curved: int | None = None):
         from ..geometry.boubekeur2008 import PhongTessellation, check_curved
@@ -106,10 +107,10 @@ class FaceGeometry:
         F = np.asarray(m.triangles, np.int64)
         if self.curved > 1:
             self.tessellation = t = PhongTessellation(F, m.n_vertices, self.curved)
-            skin, self.parent, self.corner_bary, n_skin = t.faces, t.parent, t.corner_bary, t.n_sub
+            skin, self.parent, n_skin = t.faces, t.parent, t.n_sub
         else:
             self.tessellation = None
-            skin, self.parent, self.corner_bary, n_skin = F, np.arange(len(F)), None, m.n_vertices
+            skin, self.parent, n_skin = F, np.arange(len(F)), m.n_vertices
         self.n_skin_mesh_vertices = n_skin
         self.n_skin_faces = len(skin)
         meshes = part_meshes(m.template) if (parts and m.references) else {}
@@ -128,16 +129,6 @@ class FaceGeometry:
         self.n_vertices = off
         self.triangles = np.concatenate(tris)
         self.label = np.concatenate(label)
-
-    def to_coarse(self, tri, bary) -> tuple[np.ndarray, np.ndarray]:
-        """Mesh-triangle hits on the skin → (template triangles (N,), barycentrics there (N, 3)); ``tri`` (N,) mesh
-        triangles (skin: ``< n_skin_faces``; anything else gives −1 and zeros), ``bary`` (N, 3) in them."""
-        tri = np.asarray(tri, np.int64)
-        bary = np.asarray(bary, np.float64).reshape(len(tri), 3)
-        ok = (tri >= 0) & (tri < self.n_skin_faces)
-        if self.tessellation is None:
-            return np.where(ok, tri, -1), np.where(ok[:, None], bary, 0.0)
-        return self.tessellation.to_coarse(np.where(ok, tri, -1), bary)
 
     # ------------------------------------------------------------------ input
     def expression_vector(self, spec) -> np.ndarray:
