@@ -11,12 +11,20 @@ from __future__ import annotations
 import numpy as np
 
 
+def aligned_empty(shape, dtype, alignment: int = 64) -> np.ndarray:
+    """An uninitialised C-contiguous array of ``shape`` and ``dtype`` whose data pointer is ``alignment``-aligned
+    (to be filled in place, e.g. by ``np.concatenate(..., out=)``, and handed to Dr.Jit without another copy)."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    buf = np.empty(nbytes + alignment, np.uint8)
+    off = (-buf.ctypes.data) % alignment
+    return buf[off:off + nbytes].view(dtype).reshape(shape)
+
+
 def aligned(array, dtype, alignment: int = 64) -> np.ndarray:
     """A C-contiguous copy of ``array`` as ``dtype`` whose data pointer is ``alignment``-aligned."""
     a = np.asarray(array, dtype)
-    buf = np.empty(a.nbytes + alignment, np.uint8)
-    off = (-buf.ctypes.data) % alignment
-    out = buf[off:off + a.nbytes].view(a.dtype).reshape(a.shape)
+    out = aligned_empty(a.shape, a.dtype, alignment)
     out[...] = a
     return out
 

@@ -55,17 +55,24 @@ import drjit as dr  # noqa: E402
 
 
 
-def _environment_of(scene, spec: str | None, height: int = 128):
-    """The lighting environment: a named/file environment, or the scene's infinite emitter sampled on a lat-long grid."""
+def _environment_of(scene, spec: str | None, height: int = 128, previous=None):
+    """The lighting environment: a named/file environment, or the scene's infinite emitter sampled on a
+    lat-long grid. ``previous``: the environment this returned for the last frame; it is returned again
+    when the emitter's radiance on the grid is the same to the bit (so that the renderer's rotated light
+    basis, built per environment, is built once for an animation, and again only when the emitter's
+    parameters change)."""
     from mifacerf.environment import Environment, evaluate_emitter, latlong_grid, resolve
 
-    if spec:
-        return resolve(spec)
+    if spec:   # named or read from a file: the same for every frame
+        return previous if previous is not None else resolve(spec)
     for em in scene.emitters():
         if _is_environment(em):
             dirs, _ = latlong_grid(height)
-            rad = evaluate_emitter(em, dirs.reshape(-1, 3)).reshape(height, 2 * height, 3)
-            return Environment(np.maximum(rad, 0), "scene-emitter")
+            rad = np.maximum(evaluate_emitter(em, dirs.reshape(-1, 3)).reshape(height, 2 * height, 3), 0)
+            if previous is not None and previous.name == "scene-emitter" and \
+                    previous.data.shape == rad.shape and np.array_equal(previous.data, rad):
+                return previous
+            return Environment(rad, "scene-emitter")
     others = ", ".join(_emitter_name(em) for em in scene.emitters())
     raise ValueError("the facerf integrator needs an environment: give 'environment' or put an "
                      "infinite emitter (envmap, constant, sunsky) in the scene"
@@ -180,6 +187,8 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
                 nested = obj
         self.nested = nested or mi.load_dict({"type": "path", "max_depth": 2})
         self.frame = None
+        self._env = None
+        self._inside = False   # within render(): the frame is planned
         self.face_shape = None
         self.stats = None
 
@@ -221,7 +230,7 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
         # a view far from every capture camera, a collapsed target: warned (RenderWarning), as in Renderer.render
         view_checks(pose.target, camera, face.model.cameras, self.stats)
         plan = plan_frame(face.model, pose.target, pose.weights, camera)
-        env = _environment_of(scene, self.env_spec)
+        env = self._env = _environment_of(scene, self.env_spec, previous=self._env)
         ignored = finite_emitters(scene)
         if ignored:
             self.stats.warn(f"facerf: the exact path lights the face with the environment only; "
@@ -247,9 +256,15 @@ class FaceRFIntegrator(mi.SamplingIntegrator):
             self._part_centre = to_jit(mi.Float, centres.reshape(-1))
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if self._inside:   # Mitsuba's base render calls this override once more (its trampoline): planned already
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
         s = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         self.prepare(scene, s)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
+        self._inside = True
+        try:
+            return super().render(scene, s, seed, spp, develop, evaluate)
+        finally:
+            self._inside = False
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         active = mi.Bool(active)

@@ -204,6 +204,7 @@ class MaterialState:
 
             self.vis_light = to_jit(mi.Float, visibility(model, visibility_rule).reshape(-1))
         self._lum: dict[int, np.ndarray] = {}
+        self._parts: dict[int, list[tuple]] = {}
         self.sampling = LightSampling(model.light_directions)
         self.update(target, weights)
 
@@ -247,39 +248,76 @@ class MaterialState:
         self.sampling.set_table(table)
 
     def _upload(self, sources: list[int]) -> None:
-        """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images."""
+        """Fields of ``sources`` (every camera) on the device: float16 rows and per-field texel-index images.
+        Each source's fields are read once (:meth:`_source_parts`); a source added later re-concatenates
+        the parts already read, it does not read them again."""
+        import drjit as dr
+
+        from ..jitarrays import aligned_empty
+
         mi, model, C = self.mi, self.model, self.C
         index_parts, rf_parts, depth_parts, outline_parts = [], [], [], []
         offsets = np.zeros(len(model.expressions) * C, np.uint32)
         img_off, row_off = 0, 0
         for s in sources:
-            for c in range(C):
-                cam = model.cameras[c]
-                idx = np.full(cam.height * cam.width, -1, np.int64)
-                if model.has_field(s, c):
-                    f = model.field(s, c)
-                    idx[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f)) + row_off
-                    rf_parts.append(self._rows(f, s, c))
-                    if s not in self._lum:
-                        self._lum[s] = np.zeros((model.n_vertices, model.n_lights))
-                    lum = np.asarray(rf_parts[-1], np.float32).mean(axis=2)        # (N, L)
-                    for kk in range(3):   # each texel's response to its triangle's vertices, by barycentrics
-                        np.add.at(self._lum[s], model.triangles[f.tri, kk], f.bary[:, kk, None] * lum)
-                    depth_parts.append(np.asarray(f.depth, np.float32))
-                    # texels on the subject's outline: read as the exact path reads them (frame.outline_texels)
-                    outline_parts.append(outline_texels(f.depth_map())[f.pixels[:, 0], f.pixels[:, 1]].astype(np.float32))
-                    row_off += len(f)
-                index_parts.append(idx)
+            for c, (local, rows, depth, outline) in enumerate(self._source_parts(s)):
+                if rows is not None:
+                    index_parts.append(np.where(local >= 0, local + row_off, -1).astype(np.int32))
+                    rf_parts.append(rows)
+                    depth_parts.append(depth)
+                    outline_parts.append(outline)
+                    row_off += len(rows)
+                else:
+                    index_parts.append(local)
                 offsets[s * C + c] = img_off
-                img_off += cam.height * cam.width
+                img_off += len(local)
         if row_off >= 2 ** 31 // (model.n_lights * 3):
             raise ValueError("too many texels for one material state; render fewer expressions at once")
-        self.texel_index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32))
+        self.texel_index = to_jit(mi.Int32, np.concatenate(index_parts))
         self.field_offset = to_jit(mi.UInt32, offsets)
-        self.rf = to_device_f16(np.concatenate(rf_parts) if rf_parts else np.zeros((1, model.n_lights, 3)))
+        if rf_parts:   # concatenated straight into the aligned buffer Dr.Jit reads (one copy of the rows, not two)
+            rf = aligned_empty((row_off, model.n_lights, 3), np.float16)
+            np.concatenate(rf_parts, out=rf)
+            self.rf = dr.float16_array_t(mi.Float)(rf.reshape(-1))
+        else:
+            self.rf = to_device_f16(np.zeros((1, model.n_lights, 3)))
         self.texel_depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1, np.float32))
         self.texel_outline = to_jit(mi.Float, np.concatenate(outline_parts) if outline_parts else np.zeros(1, np.float32))
         self.uploaded = list(sources)
+
+    def _source_parts(self, s: int) -> list[tuple]:
+        """Per camera of source ``s``: (texel index image (H*W,) int32, −1 where no texel; rows (N, L, 3)
+        float16 or None without a field; depth (N,) float32; outline (N,) float32), read once and kept (the
+        exact rows are the memory-mapped field itself), and the source's blended response per light
+        (``_lum[s]`` (T, L): each texel's mean over colours spread to its triangle's vertices by barycentrics,
+        summed over cameras) for :class:`LightSampling`."""
+        parts = self._parts.get(s)
+        if parts is not None:
+            return parts
+        from scipy.sparse import csr_matrix
+
+        model = self.model
+        parts, lum_total = [], np.zeros((model.n_vertices, model.n_lights))
+        for c in range(self.C):
+            cam = model.cameras[c]
+            local = np.full(cam.height * cam.width, -1, np.int32)
+            if not model.has_field(s, c):
+                parts.append((local, None, None, None))
+                continue
+            f = model.field(s, c)
+            local[f.pixels[:, 0] * cam.width + f.pixels[:, 1]] = np.arange(len(f), dtype=np.int32)
+            rows = self._rows(f, s, c)
+            n = len(f)
+            spread = csr_matrix((np.asarray(f.bary, np.float64).reshape(-1),
+                                 (np.repeat(np.arange(n), 3), model.triangles[f.tri].reshape(-1))),
+                                shape=(n, model.n_vertices))
+            lum_total += spread.T @ np.asarray(rows, np.float32).mean(axis=2)             # (T, L)
+            # texels on the subject's outline: read as the exact path reads them (frame.outline_texels)
+            outline = outline_texels(f.depth_map())[f.pixels[:, 0], f.pixels[:, 1]].astype(np.float32)
+            parts.append((local, rows, np.asarray(f.depth, np.float32), outline))
+        self._lum[s] = lum_total
+        self._parts[s] = parts
+        return parts
 
     def _upload_visibility(self, sources: list[int]) -> None:
         """The per-triangle grids of captured self-visibility (:func:`.self_visibility.source_triangle_visibility`)

@@ -348,7 +348,10 @@ class PartFrame:
         zero = dr.width(q.x)
         state = (dr.opaque(UInt32, 0, zero), dr.opaque(Float, 0, zero), dr.opaque(Float, 0, zero),
                  dr.opaque(Float, 0, zero))
-        _, r, g, b = dr.while_loop(state, lambda i, *_: i < n_lights, body)
+        # lanes that are not a lit part hit leave the loop at once (a caller shading every pixel's sample,
+        # e.g. the facerf integrator, would otherwise run all L iterations for each of them: 10x its frame)
+        go = active & (wsum > 0)
+        _, r, g, b = dr.while_loop(state, lambda i, *_: (i < n_lights) & go, body)
         colour = mi.Color3f(r, g, b)
         if self.env_lookup is not None:  # the re-synthesised cornea highlight (eyes only)
             is_eye = part < 2

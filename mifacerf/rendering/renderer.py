@@ -162,11 +162,20 @@ class Renderer:
         self._part_views: dict[tuple[str, int, str], dict | None] = {}
 
     # -------------------------------------------------------------- lighting
+    #: rotated light bases kept (the most recently used environments): a sequence lit by a new
+    #: environment each frame holds at most this many, not one per frame
+    KEPT_BASES = 4
+
     def light_basis(self, env: Environment) -> RotatedLightBasis:
+        """The rotated light-stage basis of ``env`` (kept per environment object, most recent first)."""
         key = id(env)
-        if key not in self._bases or self._bases[key][0] is not env:
-            self._bases[key] = (env, RotatedLightBasis(env, self.light_directions, method=self.basis))
-        return self._bases[key][1]
+        entry = self._bases.pop(key, None)
+        if entry is None or entry[0] is not env:
+            entry = (env, RotatedLightBasis(env, self.light_directions, method=self.basis))
+        self._bases[key] = entry          # re-inserted: dicts keep insertion order, the oldest goes first
+        while len(self._bases) > self.KEPT_BASES:
+            self._bases.pop(next(iter(self._bases)))
+        return entry[1]
 
     def _device_field(self, s: int, c: int):
         """Field (s, c) loaded for lighting by the renderer's method (cached)."""

@@ -140,3 +140,15 @@ def test_camera_far_outside_the_captured_views(toy, eye, covered):
         assert stats.fallback_samples > 0
     else:
         assert img.max() == 0
+
+
+def test_the_renderer_keeps_the_bases_of_its_last_few_environments(toy_model):
+    """A sequence lit by a new environment each frame holds at most ``KEPT_BASES`` rotated light bases (it
+    had kept one per environment object for ever); the most recent one is reused, not rebuilt."""
+    r = Renderer(toy_model)
+    envs = [E.Environment(np.full((16, 32, 3), 0.1 * (k + 1), np.float32), f"grey{k}") for k in range(7)]
+    bases = [r.light_basis(e) for e in envs]
+    assert len(r._bases) == Renderer.KEPT_BASES
+    assert r.light_basis(envs[-1]) is bases[-1] and r.light_basis(envs[-4]) is bases[-4]
+    assert r.light_basis(envs[0]) is not bases[0]     # dropped, built again
+    assert len(r._bases) == Renderer.KEPT_BASES

@@ -268,3 +268,77 @@ def test_light_rules_of_the_material(mi):
     np.testing.assert_allclose(hat_w.max(axis=1), 1.0, atol=1e-9)
     with pytest.raises(ValueError, match="unknown light basis method 'sh'; choose one of voronoi, hat"):
         LightInterpolator(dirs, method="sh")
+
+
+def test_the_integrator_plans_once_per_frame_and_rebuilds_the_basis_only_when_the_emitter_changes(
+        toy_model, plugins, monkeypatch):
+    """One ``mi.render`` plans and lights the frame once (Mitsuba's base render calls the Python override
+    again; it had planned twice), and the rotated light basis of the scene's environment is built once for
+    an animation, again when the emitter's parameters change (and the image follows them)."""
+    mi = plugins
+    from mifacerf.plugins.facerf_integrator import FaceRFIntegrator
+    from mifacerf.rendering import lighting
+    from mifacerf.rendering.sensors import sensor_dict
+
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "facerf"}, "sensor": sensor_dict(_camera(24), spp=2),
+                          "sky": {"type": "constant", "radiance": 1.0},
+                          "face": {"type": "facerf_face", "model": str(toy_model.root), "bsdf": {"type": "facerf_bsdf"}}})
+    calls = {"prepare": 0, "basis": 0}
+    prepare, basis_init = FaceRFIntegrator.prepare, lighting.RotatedLightBasis.__init__
+
+    def counted_prepare(self, *a):
+        calls["prepare"] += 1
+        return prepare(self, *a)
+
+    def counted_basis(self, *a, **k):
+        calls["basis"] += 1
+        return basis_init(self, *a, **k)
+
+    monkeypatch.setattr(FaceRFIntegrator, "prepare", counted_prepare)
+    monkeypatch.setattr(lighting.RotatedLightBasis, "__init__", counted_basis)
+    params = mi.traverse(scene)
+    face = [s for s in scene.shapes() if s.id() == "face"][0]
+    images = []
+    for a in (1.0, 0.5, 0.0):
+        params["face.expression"] = face.weights({"neutral": a, "stretch": 1 - a})
+        params.update()
+        images.append(np.asarray(mi.render(scene)))
+    assert calls == {"prepare": 3, "basis": 1}, calls
+    params["sky.radiance.value"] = 2.0     # the emitter changed: a new basis, and twice the light
+    params.update()
+    brighter = np.asarray(mi.render(scene))
+    assert calls == {"prepare": 4, "basis": 2}, calls
+    m = images[-1][..., 3] > 0.999
+    assert m.sum() > 50
+    np.testing.assert_allclose(brighter[..., :3][m].mean() / images[-1][..., :3][m].mean(), 2.0, rtol=1e-3)
+
+
+def test_the_material_reads_each_source_once_and_keeps_it(toy_model, mi):
+    """A source added by a later pose is uploaded beside the ones already read, to the same arrays and
+    sampling table as a state made with all of them at once (before, every source was read again and its
+    response per light, the sampling table's, summed in once more each time)."""
+    from mifacerf.rendering.material import MaterialState
+
+    m = toy_model
+    T, S = m.n_vertices, len(m.expressions)
+    n, s = m.expression_index("neutral"), m.expression_index("stretch")
+    only = np.zeros((T, S)); only[:, n] = 1
+    both = np.zeros((T, S)); both[:, n] = 0.5; both[:, s] = 0.5
+    later = MaterialState(m, m.vertices[n], only, self_visibility=False)
+    reads = []
+    field = type(m).field
+    try:
+        type(m).field = lambda self, *a: (reads.append(a), field(self, *a))[1]
+        later.update(m.vertices[s], both)
+        later.update(m.vertices[n], only)
+        later.update(m.vertices[s], both)
+    finally:
+        type(m).field = field
+    assert sorted({a[0] for a in reads}) == [s]           # only the new source's fields were read, once each
+    assert len(reads) == sum(m.has_field(s, c) for c in range(len(m.cameras)))
+    fresh = MaterialState(m, m.vertices[s], both, self_visibility=False)
+    for name in ("texel_index", "field_offset", "texel_depth", "texel_outline", "rf"):
+        np.testing.assert_array_equal(np.asarray(getattr(later, name)), np.asarray(getattr(fresh, name)), name)
+    for k in (n, s):
+        np.testing.assert_allclose(later._lum[k], fresh._lum[k], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(later.sampling.prob), np.asarray(fresh.sampling.prob), rtol=1e-5)
