@@ -106,6 +106,31 @@ def test_resolve_pixels_fills_from_the_nearest_covered_pixel():
     assert img[..., :3].max() == 0 and filled == 0
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_the_fill_over_the_gaps_window_is_the_whole_images_bit_for_bit(seed):
+    """resolve_pixels smooths the covered colours over the gap's bounding box grown by the Gaussian's radius
+    only: the filled pixels are those of the normalised convolution over the whole image (``window=False``),
+    bit for bit, for gaps anywhere (at the border, in the middle, several far apart, one pixel)."""
+    from mifacerf.rendering import frame
+
+    rng = np.random.default_rng(seed)
+    H, W, spp = 96, 120, 2
+    n = H * W
+    pix = np.repeat(np.arange(n), spp)
+    keep = rng.random(len(pix)) < 0.85                                   # some pixels missed, some half
+    pix = pix[keep]
+    colour = rng.random((len(pix), 3))
+    covered = np.ones(len(pix), bool)
+    yy, xx = np.divmod(pix, W)
+    for _ in range(seed % 3 + 1):                                         # gaps without coverage
+        cy, cx, r = rng.integers(0, H), rng.integers(0, W), rng.integers(0, 12)
+        covered &= (yy - cy) ** 2 + (xx - cx) ** 2 > r * r
+    img, filled = frame.resolve_pixels(pix, colour, covered, H, W, spp)
+    whole, filled_whole = frame.resolve_pixels(pix, colour, covered, H, W, spp, window=False)
+    assert filled > 0 and filled == filled_whole
+    np.testing.assert_array_equal(img, whole)
+
+
 def test_outline_texels_are_the_outer_ring_not_the_rim_of_a_hole():
     """A field's texels beside the background (the texel-free area reaching the image border) are on the
     subject's outline and are marked (coverage -1: read only where the chunk has no other texel for the
