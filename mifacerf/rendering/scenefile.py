@@ -75,7 +75,15 @@ def scene_defaults(xml_path) -> dict:
     try:
         root = ET.parse(xml_path).getroot()
     except ET.ParseError as exc:
-        raise SceneError(f"{xml_path}: not a well-formed scene file ({exc})") from exc
+        # Mitsuba's own parser accepts what strict XML refuses inside comments (a "--", as in "--spp 16"):
+        # so does this, with the comments taken out; anything else is named
+        import re
+
+        try:
+            text = Path(xml_path).read_text(encoding="utf-8", errors="replace")
+            root = ET.fromstring(re.sub(r"<!--.*?-->", "", text, flags=re.S))
+        except ET.ParseError:
+            raise SceneError(f"{xml_path}: not a well-formed scene file ({exc})") from exc
     return {d.get("name"): d.get("value") for d in root.iter("default")}
 
 
