@@ -63,11 +63,24 @@ class LightInterpolator:
         M = np.stack([self.directions[tri[:, k]] for k in range(3)], axis=2)  # columns = corners
         self.inverse = np.linalg.inv(M)
         dirs, _ = latlong_grid(self.grid_h)
-        lam = np.einsum("mij,nj->nmi", self.inverse, dirs.reshape(-1, 3))  # (N, M, 3)
-        score = lam.min(axis=2)
-        score[lam.sum(axis=2) <= 0] = -np.inf  # the antipodal triangle
-        self.grid = np.argmax(score, axis=1)
+        self.grid = self._containing(dirs.reshape(-1, 3))
         self.candidates = self._nearest_candidates()
+
+    def _containing(self, dirs: np.ndarray, chunk: int = 2048) -> np.ndarray:
+        """(N,) for directions (N, 3): the triangle whose smallest gnomonic barycentric is largest (the one
+        holding the direction; not the antipodal one, whose barycentrics sum ≤ 0). The three barycentrics
+        are computed as three (n, M) arrays, a chunk of directions at a time: a reduction over an axis of
+        3 and an (N, M, 3) einsum took 1-2 s for the 128-row grid and 380 triangles."""
+        inv = self.inverse                                             # (M, 3, 3): λ = inv @ ω
+        out = np.empty(len(dirs), np.int64)
+        for a in range(0, len(dirs), chunk):
+            d = dirs[a:a + chunk]
+            lam = [d[:, 0:1] * inv[None, :, i, 0] + d[:, 1:2] * inv[None, :, i, 1] + d[:, 2:3] * inv[None, :, i, 2]
+                   for i in range(3)]                                  # 3 × (n, M)
+            score = np.minimum(np.minimum(lam[0], lam[1]), lam[2])
+            score[(lam[0] + lam[1] + lam[2]) <= 0] = -np.inf           # the antipodal triangle
+            out[a:a + chunk] = np.argmax(score, axis=1)
+        return out
 
     def _nearest_candidates(self, n: int = 4) -> np.ndarray:
         """(cells, n) lights nearest to each grid cell's centre, corners and edge midpoints (repeated to n)."""
@@ -81,11 +94,17 @@ class LightInterpolator:
                 uv = np.stack([(xx + dx) / w, np.clip((yy + dy) / h, 1e-6, 1 - 1e-6)], -1).reshape(-1, 2)
                 out.append(np.argmax(uv_to_direction(uv) @ self.directions.T, axis=1))
         near = np.stack(out, 1)   # (cells, 9)
-        cand = np.empty((len(near), n), np.int64)
-        for i, row in enumerate(near):
-            u = list(dict.fromkeys(row.tolist()))[:n]
-            cand[i] = (u * n)[:n]
-        return cand
+        # per row: its distinct lights in order of first appearance, the first n of them, repeated cyclically
+        # to n (vectorised; a Python loop over the 32,768 cells took 0.15 s)
+        first = np.ones(near.shape, bool)
+        for j in range(1, near.shape[1]):
+            first[:, j] = (near[:, :j] != near[:, j:j + 1]).all(axis=1)
+        count = np.minimum(first.sum(1), n)
+        rank = np.cumsum(first, axis=1) - 1
+        uniq = np.zeros((len(near), n), np.int64)
+        rows, cols = np.nonzero(first & (rank < n))
+        uniq[rows, rank[rows, cols]] = near[rows, cols]
+        return uniq[np.arange(len(near))[:, None], np.arange(n)[None] % count[:, None]]
     def _cell(self, d: np.ndarray) -> np.ndarray:
         uv = direction_to_uv(d)
         x = np.minimum((uv[:, 0] * self.grid_w).astype(np.int64), self.grid_w - 1)

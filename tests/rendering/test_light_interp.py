@@ -54,3 +54,31 @@ def test_degenerate_layout_uses_nearest():
     assert li.nearest_only
     idx, w = li.weights(np.array([[0.9, 0.1, 0.05]]))
     assert idx[0, 0] == 0 and w[0, 0] == 1.0
+
+
+@pytest.mark.parametrize("n_lights", [5, 12, 48, 150])
+def test_lookup_grid_by_its_definition(n_lights):
+    """The lookup grid (vectorised since 2026-12-03) is what its definition says, computed plainly: per
+    cell the triangle with the largest smallest gnomonic barycentric among those not antipodal, and the
+    first four distinct lights nearest to the cell's centre, corners and edge midpoints, repeated to four."""
+    from mifacerf.environment import latlong_grid, uv_to_direction
+    from mifacerf.rendering.light_interp import LightInterpolator
+
+    rng = np.random.default_rng(n_lights)
+    d = rng.standard_normal((n_lights, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    li = LightInterpolator(d, grid_height=12)
+    dirs, _ = latlong_grid(12)
+    dirs = dirs.reshape(-1, 3)
+    for cell in range(len(dirs)):
+        lam = li.inverse @ dirs[cell]                                     # (M, 3)
+        score = np.where(lam.sum(1) > 0, lam.min(1), -np.inf)
+        assert score[li.grid[cell]] >= score.max() - 1e-12
+        assert score[li.grid[cell]] >= -1e-9                              # it holds the cell's centre
+    h, w = 12, 24
+    for cell in rng.choice(h * w, 40, replace=False):
+        y, x = divmod(int(cell), w)
+        near = [int(np.argmax(uv_to_direction(np.array([[(x + dx) / w, np.clip((y + dy) / h, 1e-6, 1 - 1e-6)]]))
+                              @ d.T)) for dy in (0.0, 0.5, 1.0) for dx in (0.0, 0.5, 1.0)]
+        u = list(dict.fromkeys(near))[:4]
+        assert li.candidates[cell].tolist() == (u * 4)[:4]
