@@ -12,6 +12,10 @@ sensor (render chunks, per-vertex rotations, camera weights) and lights every ch
 (:class:`mifacerf.rendering.frame.LitFrame`); ``sample`` then shades face hits with the
 same Dr.Jit kernel as the Python API.
 
+The face needs no material under this integrator: a ``facerf_bsdf`` on it serves only the nested
+integrator's bounces from other objects onto the face, and reads each source expression's fields and
+ray-traces their self-visibility when first used (``scenes/face_envmap.xml`` gives the face none).
+
 The face is the scene's ``facerf_face`` shape (:mod:`.facerf_shape`): its model, expression and
 pose are read from it at every render, so an animation sets them through ``mi.traverse`` and
 renders again without reloading. Its eyes, teeth and mouth interior (part-labelled triangles of
