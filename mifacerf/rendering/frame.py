@@ -73,11 +73,8 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
     empty = (hits > 0) & (count == 0)
     filled = 0
     if empty.any() and (count > 0).any():
-        from scipy.ndimage import distance_transform_edt
-
-        _, (ii, jj) = distance_transform_edt((count == 0).reshape(height, width), return_indices=True)
-        nearest = (ii * width + jj).reshape(-1)
-        mean[empty] = mean[nearest[empty]]
+        fill = np.zeros((int(empty.sum()), 3))
+        far = np.ones(len(fill), bool)    # gap pixels the smoothing does not reach: the nearest pixel's colour
         sigma = FILL_SIGMA * max(height, width)
         if sigma > 0:       # the covered pixels' colours smoothed over the gap (normalised convolution)
             from scipy.ndimage import gaussian_filter
@@ -95,7 +92,15 @@ def resolve_pixels(pix: np.ndarray, colour: np.ndarray, covered: np.ndarray, hei
             wsum = gaussian_filter(have[win].astype(np.float64), sigma, mode="constant")[at]
             smooth = np.stack([gaussian_filter(np.where(have, mean[:, ch].reshape(height, width), 0.0)[win], sigma,
                                                mode="constant")[at] for ch in range(3)], -1)
-            mean[empty] = np.where((wsum > 1e-3)[:, None], smooth / np.maximum(wsum, 1e-30)[:, None], mean[empty])
+            far = ~(wsum > 1e-3)
+            fill[~far] = smooth[~far] / np.maximum(wsum[~far], 1e-30)[:, None]
+        if far.any():       # the distance transform only where it is read (0.08 s at 1024², on every gap before)
+            from scipy.ndimage import distance_transform_edt
+
+            _, (ii, jj) = distance_transform_edt((count == 0).reshape(height, width), return_indices=True)
+            nearest = (ii * width + jj).reshape(-1)
+            fill[far] = mean[nearest[np.flatnonzero(empty)[far]]]
+        mean[empty] = fill
         filled = int(empty.sum())
     rgba = np.empty((n, 4))
     rgba[:, :3] = (total + (hits - count)[:, None] * mean) / spp
