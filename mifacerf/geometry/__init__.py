@@ -13,5 +13,6 @@ there is a published one):
 - :mod:`.visibility`: per-vertex visibility of a mesh from the cameras (ray-traced, facing test).
 - :mod:`.maxima`: 3 × 3 local maxima of a 2-D map (dot-strength maps).
 - :mod:`.margins`: lip and eyelid margins of a template mesh from its hole loops.
+- :mod:`.vectors`: row-wise lengths of many small vectors (``np.linalg.norm(axis=1)``'s values, fast).
 - :mod:`.meshscene`: a triangle mesh in its own Mitsuba scene for ray casting (visibility).
 """
