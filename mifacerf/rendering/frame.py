@@ -17,7 +17,9 @@ filtering: a texel showing an occluder, or a surface behind a silhouette, is not
 used; on a surface camera ``c`` sees obliquely the tolerance grows with the depth's slope there,
 :func:`grazing_tolerance`); a texel camera ``c`` sees more obliquely than ``MIN_VIEW_COS`` is not read
 where the render view sees the point at least twice as squarely (``OBLIQUE_RATIO``; the renderer sets
-``LitFrame.view_origin``, the integrator plugin does not: rule off); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's two tiers
+``LitFrame.view_origin``, the integrator plugin does not: rule off — there a hit the rule leaves uncovered
+would be a hole, the renderer's image-space fill being out of reach of a per-sample integrator; measured
+with it on, docs/rendering.md "The scene loop's frame"); the chunk's weight is ``a = Σ_k b_k a_{tri_k}`` in each of the plan's two tiers
 (:mod:`.chunks`: primary, fallback). Result: Σ a·colour / Σ a over the chunks that see
 the point, with the primary weights; where no primary chunk sees it, with the fallback
 weights; where no chunk sees it, over the chunks regardless of the depth test with the
