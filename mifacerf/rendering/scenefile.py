@@ -79,11 +79,11 @@ def scene_defaults(xml_path) -> dict:
         # so does this, with the comments taken out; anything else is named
         import re
 
-        try:
+        try:   # each comment replaced by its line breaks, so that an error elsewhere is named at its own line
             text = Path(xml_path).read_text(encoding="utf-8", errors="replace")
-            root = ET.fromstring(re.sub(r"<!--.*?-->", "", text, flags=re.S))
-        except ET.ParseError:
-            raise SceneError(f"{xml_path}: not a well-formed scene file ({exc})") from exc
+            root = ET.fromstring(re.sub(r"<!--.*?-->", lambda m: "\n" * m.group().count("\n"), text, flags=re.S))
+        except ET.ParseError as inner:
+            raise SceneError(f"{xml_path}: not a well-formed scene file ({inner})") from exc
     return {d.get("name"): d.get("value") for d in root.iter("default")}
 
 

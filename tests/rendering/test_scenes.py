@@ -245,6 +245,10 @@ def test_a_comment_mitsuba_accepts_does_not_stop_mifacerf_render(tmp_path):
     bad.write_text('<scene version="3.0.0"><default name="spp" value="4"></scene>\n')
     with pytest.raises(SceneError, match="bad.xml: not a well-formed scene file"):
         scene_defaults(bad)
+    both = tmp_path / "both.xml"      # a "--" comment over two lines and a broken tag: named at the tag's line
+    both.write_text('<!-- a\n -- b -->\n<scene version="3.0.0">\n<default name="spp" value="4">\n</scene>\n')
+    with pytest.raises(SceneError, match=r"both.xml: not a well-formed scene file \(mismatched tag: line 5"):
+        scene_defaults(both)
 
 
 def test_mifacerf_render_takes_the_familiar_options(toy_model, tmp_path):
