@@ -105,6 +105,7 @@ class LightInterpolator:
         rows, cols = np.nonzero(first & (rank < n))
         uniq[rows, rank[rows, cols]] = near[rows, cols]
         return uniq[np.arange(len(near))[:, None], np.arange(n)[None] % count[:, None]]
+
     def _cell(self, d: np.ndarray) -> np.ndarray:
         uv = direction_to_uv(d)
         x = np.minimum((uv[:, 0] * self.grid_w).astype(np.int64), self.grid_w - 1)

@@ -175,10 +175,10 @@ def _free_from(vertices, triangles, origins, normals, directions, chunk_rays: in
     scale = float(np.linalg.norm(V.max(0) - V.min(0))) or 1.0
     eps = 1e-4 * scale
     O, N, D = (np.asarray(x, np.float64) for x in (origins, normals, directions))
-    out = np.zeros((len(O), len(D)), bool)
     step = max(1, chunk_rays // len(D))
     if near <= 0 and len(O) and len(D):
         return _free_from_device(mi, scene, O, N, D, eps, step)
+    out = np.zeros((len(O), len(D)), bool)
     for a in range(0, len(O), step):
         o, n = O[a:a + step], N[a:a + step]
         side = np.sign(n @ D.T)                                            # (n, D): +1 above the plane
