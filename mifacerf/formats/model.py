@@ -30,7 +30,8 @@ file of the folder. Opening checks that every listed file exists with its size
 (one ``stat`` each) and the checksum of ``geometry.npz``; a field's, a part field's,
 a compressed field's and the blend model's files are checksummed the first time they
 are read (a field's ``.rf.npy`` when it is first memory-mapped: once per file and
-process); :meth:`ModelFolder.verify` (``mifacerf verify MODEL``) checks everything at
+process; a file already checked by an earlier process, and unchanged since, is trusted from its stamp:
+:func:`.files.check_entry`); :meth:`ModelFolder.verify` (``mifacerf verify MODEL``) checks everything at
 once. Every mismatch raises :class:`ModelError` naming the file. Version-1 models
 (no ``files``) are still read, unchecked.
 

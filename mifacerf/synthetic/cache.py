@@ -13,14 +13,14 @@ from pathlib import Path
 
 import numpy as np
 
+from ..formats.files import user_cache_dir
+
 #: bump when anything that feeds a cached result changes
 SUBJECT_VERSION = "head-v9"
 
 
 def cache_dir() -> Path:
-    root = os.environ.get("MIFACERF_CACHE", "").strip()
-    base = Path(root) if root else Path.home() / ".cache" / "mifacerf"
-    d = base / "synthetic"
+    d = user_cache_dir() / "synthetic"
     d.mkdir(parents=True, exist_ok=True)
     return d
 
