@@ -183,3 +183,45 @@ def test_the_grid_interpolation_lands_on_its_points(mi):
     inside = mid.min(1) > 0.06                                    # inside the inset grid: linear reproduction
     rec = np.einsum("nc,ncd->nd", w[n:], B[c[n:]])
     np.testing.assert_allclose(rec[inside], mid[inside], atol=1e-4)
+
+
+def test_the_grids_are_kept_on_disk_by_what_they_are_computed_from(mi, tmp_path, monkeypatch):
+    """A second process reads a source's grid from the user's cache (the same array to the bit) instead of
+    tracing it again; other vertices or another rule are another file; a damaged file is named and recomputed;
+    MIFACERF_VISIBILITY_CACHE=0 writes nothing."""
+    import warnings
+
+    import pytest
+
+    from mifacerf.rendering import self_visibility as sv
+
+    monkeypatch.setenv("MIFACERF_CACHE", str(tmp_path))
+    monkeypatch.delenv("MIFACERF_VISIBILITY_CACHE", raising=False)
+    V, F = _sphere(120)
+    D = np.random.default_rng(3).normal(size=(8, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    traced = []
+    real = sv.triangle_visibility
+    monkeypatch.setattr(sv, "triangle_visibility", lambda *a, **k: traced.append(1) or real(*a, **k))
+    first = sv.cached_triangle_visibility(V, F, D, rule="ray", order=2)
+    again = sv.cached_triangle_visibility(V, F, D, rule="ray", order=2)
+    assert len(traced) == 1 and again.dtype == np.float32 and np.array_equal(first, again)
+    assert np.array_equal(first, real(V, F, D, rule="ray", order=2))
+    files = sorted((tmp_path / "visibility").glob("grid-*.npy"))
+    assert len(files) == 1
+    moved = V * 1.01
+    sv.cached_triangle_visibility(moved, F, D, rule="ray", order=2)
+    sv.cached_triangle_visibility(V, F, D, rule="ray", order=1)
+    assert len(traced) == 3 and len(list((tmp_path / "visibility").glob("grid-*.npy"))) == 3
+    files[0].write_bytes(b"not an array")
+    with pytest.warns(UserWarning, match=rf"{files[0].name}: a damaged self-visibility cache file"):
+        fixed = sv.cached_triangle_visibility(V, F, D, rule="ray", order=2)
+    assert len(traced) == 4 and np.array_equal(fixed, first)
+    np.save(files[0], np.full(first.shape, 2.0, np.float32))          # out of [0, 1]
+    with pytest.warns(UserWarning, match="recomputed"):
+        assert np.array_equal(sv.cached_triangle_visibility(V, F, D, rule="ray", order=2), first)
+    monkeypatch.setenv("MIFACERF_VISIBILITY_CACHE", "0")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sv.cached_triangle_visibility(V * 1.02, F, D, rule="ray", order=2)
+    assert len(traced) == 6 and len(list((tmp_path / "visibility").glob("grid-*.npy"))) == 3
