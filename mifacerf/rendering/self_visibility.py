@@ -45,10 +45,13 @@ everything they are computed from — the source's vertices, the triangles, the 
 scene with ``facerf_bsdf``) reads them instead of tracing 3.7 s a source again. A cached file of another
 shape, with values outside [0, 1] or unreadable is recomputed, with a warning naming it; one that cannot be
 written only costs the tracing (``MIFACERF_VISIBILITY_CACHE=0``: memory only). F × 16 × L float32 a source:
-19 MB for the demo model's 1,527 triangles and 192 lights.
+19 MB for the demo model's 1,527 triangles and 192 lights. The folder is kept under
+``$MIFACERF_VISIBILITY_CACHE_MB`` (default 2048 MB) by deleting the least recently used grids
+(:func:`trim_cache`).
 """
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -324,7 +327,6 @@ def source_triangle_visibility(model, source: int, rule: str = "cell", order: in
 
 def _disk_path(vertices, triangles, directions, rule, order, near) -> Path | None:
     import hashlib
-    import os
 
     from ..formats.files import user_cache_dir
 
@@ -351,6 +353,10 @@ def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cel
         try:
             got = np.load(path, allow_pickle=False)
             if got.shape == want and got.dtype == np.float32 and np.all((got >= 0) & (got <= 1)):
+                try:
+                    os.utime(path)                      # used now: the last to go when the cache is trimmed
+                except OSError:
+                    pass
                 return got
             problem = f"shape {got.shape} {got.dtype}, want {want} float32 in [0, 1]"
         except (OSError, ValueError, EOFError) as exc:
@@ -360,6 +366,40 @@ def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cel
     if path is not None:
         try:
             save_npy_atomic(path, out)
+            trim_cache(path.parent)
         except OSError:
             pass
     return out
+
+
+#: the disk cache's bound in MB (``MIFACERF_VISIBILITY_CACHE_MB``): beyond it the least recently used grids go
+CACHE_MB = 2048
+
+
+def trim_cache(folder: Path, limit_mb: float | None = None) -> list[Path]:
+    """Delete the least recently used grids (by modification time, which a read renews) of ``folder`` until
+    the rest hold at most ``limit_mb`` (default ``$MIFACERF_VISIBILITY_CACHE_MB``, else :data:`CACHE_MB`);
+    the newest is always kept. Returns the files deleted."""
+    if limit_mb is None:
+        try:
+            limit_mb = float(os.environ.get("MIFACERF_VISIBILITY_CACHE_MB", CACHE_MB))
+        except ValueError:
+            limit_mb = CACHE_MB
+    entries = []
+    for p in folder.glob("grid-*.npy"):
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        entries.append((st.st_mtime_ns, st.st_size, p))
+    entries.sort(reverse=True)                           # newest first
+    total, gone = 0, []
+    for i, (_, size, p) in enumerate(entries):
+        total += size
+        if i and total > limit_mb * 1e6:
+            try:
+                p.unlink()
+                gone.append(p)
+            except OSError:
+                pass
+    return gone

@@ -225,3 +225,22 @@ def test_the_grids_are_kept_on_disk_by_what_they_are_computed_from(mi, tmp_path,
         warnings.simplefilter("error")
         sv.cached_triangle_visibility(V * 1.02, F, D, rule="ray", order=2)
     assert len(traced) == 6 and len(list((tmp_path / "visibility").glob("grid-*.npy"))) == 3
+
+
+def test_the_disk_cache_keeps_the_most_recently_used_grids(tmp_path):
+    """trim_cache deletes the least recently used files (a read renews a file's time) down to the bound, and
+    never the newest."""
+    import os
+
+    from mifacerf.rendering.self_visibility import trim_cache
+
+    for i in range(5):
+        p = tmp_path / f"grid-{i}.npy"
+        p.write_bytes(b"x" * 400_000)
+        os.utime(p, ns=(10 ** 18 + i * 10 ** 9,) * 2)   # grid-4 the newest
+    os.utime(tmp_path / "grid-0.npy")                  # read just now: the most recent of all
+    (tmp_path / "other.txt").write_bytes(b"y" * 10 ** 6)
+    gone = trim_cache(tmp_path, limit_mb=1.0)
+    assert sorted(p.name for p in gone) == ["grid-1.npy", "grid-2.npy", "grid-3.npy"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grid-0.npy", "grid-4.npy", "other.txt"]
+    assert trim_cache(tmp_path, limit_mb=0.0) == [tmp_path / "grid-4.npy"]   # the newest (grid-0) stays
