@@ -26,10 +26,18 @@ def counted(tmp_path, monkeypatch):
     return path, entry, reads
 
 
-def test_a_checked_file_is_not_read_again_until_it_changes(counted, monkeypatch):
+@pytest.fixture
+def stamped(counted, monkeypatch):
+    """``counted`` with the age rule off and the file checked (and stamped) once."""
     path, entry, reads = counted
     monkeypatch.setattr(files, "STAMP_MIN_AGE_S", 0.0)
     files.check_entry(path, entry, ModelError)
+    assert len(reads) == 1
+    return counted
+
+
+def test_a_checked_file_is_not_read_again_until_it_changes(stamped):
+    path, entry, reads = stamped
     files.check_entry(path, entry, ModelError)
     assert len(reads) == 1                                    # the second check trusted the stamp
     assert files.verify_entries(path.parent, {path.name: entry}, ModelError) == []
@@ -43,10 +51,8 @@ def test_a_checked_file_is_not_read_again_until_it_changes(counted, monkeypatch)
     assert len(reads) == 3
 
 
-def test_touch_and_replacement_void_the_stamp(counted, monkeypatch):
-    path, entry, reads = counted
-    monkeypatch.setattr(files, "STAMP_MIN_AGE_S", 0.0)
-    files.check_entry(path, entry, ModelError)
+def test_touch_and_replacement_void_the_stamp(stamped):
+    path, entry, reads = stamped
     time.sleep(0.05)
     st = path.stat()
     os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))      # mtime put back: the ctime still moves
@@ -84,11 +90,9 @@ def test_stamps_off_and_an_unwritable_cache(counted, monkeypatch, tmp_path):
     assert len(reads) == 4
 
 
-def test_a_stamp_is_for_one_checksum(counted, monkeypatch):
+def test_a_stamp_is_for_one_checksum(stamped):
     """A manifest that expects other content is checked in full, even for a stamped file."""
-    path, entry, reads = counted
-    monkeypatch.setattr(files, "STAMP_MIN_AGE_S", 0.0)
-    files.check_entry(path, entry, ModelError)
+    path, entry, reads = stamped
     with pytest.raises(ModelError, match="checksum mismatch"):
         files.check_entry(path, {**entry, "sha256": "0" * 64}, ModelError)
     assert len(reads) == 2
