@@ -381,9 +381,16 @@ def trim_cache(folder: Path, limit_mb: float | None = None) -> list[Path]:
     the rest hold at most ``limit_mb`` (default ``$MIFACERF_VISIBILITY_CACHE_MB``, else :data:`CACHE_MB`);
     the newest is always kept. Returns the files deleted."""
     if limit_mb is None:
+        raw = os.environ.get("MIFACERF_VISIBILITY_CACHE_MB", "").strip()
         try:
-            limit_mb = float(os.environ.get("MIFACERF_VISIBILITY_CACHE_MB", CACHE_MB))
+            limit_mb = float(raw) if raw else CACHE_MB
+            if not limit_mb >= 0:
+                raise ValueError
         except ValueError:
+            import warnings
+
+            warnings.warn(f"MIFACERF_VISIBILITY_CACHE_MB={raw!r} is not a size in MB >= 0; {CACHE_MB} used",
+                          stacklevel=2)
             limit_mb = CACHE_MB
     entries = []
     for p in folder.glob("grid-*.npy"):

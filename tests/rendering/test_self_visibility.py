@@ -244,3 +244,14 @@ def test_the_disk_cache_keeps_the_most_recently_used_grids(tmp_path):
     assert sorted(p.name for p in gone) == ["grid-1.npy", "grid-2.npy", "grid-3.npy"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["grid-0.npy", "grid-4.npy", "other.txt"]
     assert trim_cache(tmp_path, limit_mb=0.0) == [tmp_path / "grid-4.npy"]   # the newest (grid-0) stays
+
+
+def test_a_bad_cache_bound_is_named(tmp_path, monkeypatch):
+    import pytest
+
+    from mifacerf.rendering.self_visibility import trim_cache
+
+    (tmp_path / "grid-0.npy").write_bytes(b"x")
+    monkeypatch.setenv("MIFACERF_VISIBILITY_CACHE_MB", "lots")
+    with pytest.warns(UserWarning, match="MIFACERF_VISIBILITY_CACHE_MB='lots' is not a size"):
+        assert trim_cache(tmp_path) == []
