@@ -362,8 +362,10 @@ GENERATORS = {"sky": lambda h: _sky(h, sun=False), "sunsky": lambda h: _sky(h, s
 
 
 def cache_dir() -> Path:
-    """Where generated data is cached: ``$MIFACERF_CACHE`` or ``~/.cache/mifacerf``."""
-    return Path(os.environ.get("MIFACERF_CACHE", Path.home() / ".cache" / "mifacerf"))
+    """Where generated data is cached: the user's cache (:func:`.formats.files.user_cache_dir`)."""
+    from .formats.files import user_cache_dir
+
+    return user_cache_dir()
 
 
 def generated(name: str, height: int = 128) -> Environment:

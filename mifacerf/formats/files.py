@@ -194,6 +194,11 @@ def user_cache_dir() -> Path:
     return Path(root) if root else Path.home() / ".cache" / "mifacerf"
 
 
+def switched_off(variable: str) -> bool:
+    """Whether environment ``variable`` turns a default-on cache off (``0``, ``off``, ``no`` or ``false``)."""
+    return os.environ.get(variable, "1").strip().lower() in ("0", "off", "no", "false")
+
+
 #: a file changed less than this many seconds ago gets no stamp: file times advance in coarse ticks, so a
 #: rewrite of the same size within one tick could keep a just-stamped file's times ("racy clean")
 STAMP_MIN_AGE_S = 2.0
@@ -205,7 +210,7 @@ def _stamp(st: os.stat_result, sha256: str) -> Path | None:
     ``<cache>/verified/`` named by the hash of (device, inode, size, mtime, ctime, sha256): any write to
     the file, a ``touch``, a copy or a replacement changes its ctime (which no user call can set back),
     so the stamp no longer applies and the file is checksummed again."""
-    if os.environ.get("MIFACERF_CHECKSUM_STAMPS", "1").strip().lower() in ("0", "off", "no", "false"):
+    if switched_off("MIFACERF_CHECKSUM_STAMPS"):
         return None
     key = f"{st.st_dev}:{st.st_ino}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}:{sha256}"
     return user_cache_dir() / "verified" / hashlib.sha1(key.encode()).hexdigest()

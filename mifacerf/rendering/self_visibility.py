@@ -328,9 +328,9 @@ def source_triangle_visibility(model, source: int, rule: str = "cell", order: in
 def _disk_path(vertices, triangles, directions, rule, order, near) -> Path | None:
     import hashlib
 
-    from ..formats.files import user_cache_dir
+    from ..formats.files import switched_off, user_cache_dir
 
-    if os.environ.get("MIFACERF_VISIBILITY_CACHE", "1").strip().lower() in ("0", "off", "no", "false"):
+    if switched_off("MIFACERF_VISIBILITY_CACHE"):
         return None
     h = hashlib.sha256(repr((CACHE_VERSION, rule, int(order), float(near), CELL_SAMPLES)).encode())
     for a in (np.asarray(vertices, np.float64), np.asarray(triangles, np.int64), np.asarray(directions, np.float64)):
