@@ -21,6 +21,16 @@ def aligned_empty(shape, dtype, alignment: int = 64) -> np.ndarray:
     return buf[off:off + nbytes].view(dtype).reshape(shape)
 
 
+def aligned_zeros(shape, dtype, alignment: int = 64) -> np.ndarray:
+    """As :func:`aligned_empty`, filled with zeros (by the allocator: a large buffer's pages are the
+    system's zero pages until written, so an image that is mostly left empty costs only what is written)."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    buf = np.zeros(nbytes + alignment, np.uint8)
+    off = (-buf.ctypes.data) % alignment
+    return buf[off:off + nbytes].view(dtype).reshape(shape)
+
+
 def aligned(array, dtype, alignment: int = 64) -> np.ndarray:
     """A C-contiguous copy of ``array`` as ``dtype`` whose data pointer is ``alignment``-aligned."""
     a = np.asarray(array, dtype)

@@ -32,7 +32,8 @@ class HalfWords:
     :func:`lit_texels` reads fastest: one 64-bit gather fetches four halves, decoded exactly by
     :func:`half_to_float` (a Float16 gather is emulated lane by lane on the CPU; the exact relight kernel
     reads its fields 2-3x faster this way, same values bit for bit). ``words`` (UInt64); ``size``: the
-    halves held (the last word padded with zeros)."""
+    halves held (the last word padded with zeros); ``halves`` the same halves on the host (flat float16,
+    the memory-mapped field itself where it could be read in place), which :mod:`.relight_cpu` reads."""
 
     def __init__(self, array: np.ndarray):
         mi = ensure_variant()
@@ -42,7 +43,7 @@ class HalfWords:
             # whole words already, 64-byte aligned (a .npy field's data starts at a multiple of 64 in a
             # page-aligned map): Dr.Jit reads them where they are (it maps NumPy memory, no copy), so a
             # field costs no memory of its own beyond the page cache, and no copy; kept referenced here
-            self._halves = flat
+            self.halves = flat
             self.words = mi.UInt64(flat.view(np.uint64))
             return
         n_words = -(-flat.size // 4)
@@ -54,6 +55,7 @@ class HalfWords:
         halves = words.view(np.uint16)
         halves[:flat.size] = flat.view(np.uint16)
         halves[flat.size:] = 0
+        self.halves = halves[:flat.size].view(np.float16)   # the host copy, read by the CPU kernel
         self.words = mi.UInt64(words)
 
 
@@ -71,7 +73,7 @@ class DeviceLighting:
 
     def __init__(self, lighting: np.ndarray):
         self.array = np.asarray(lighting)
-        self._flat = self._quads = None
+        self._flat = self._quads = self._rows = None
 
     @property
     def shape(self) -> tuple:
@@ -85,6 +87,13 @@ class DeviceLighting:
         if self._flat is None:
             self._flat = to_jit(ensure_variant().Float, self.array.reshape(-1))
         return self._flat
+
+    @property
+    def rows(self) -> np.ndarray:
+        """(V, K*3) float32, contiguous: the rows :mod:`.relight_cpu` reads."""
+        if self._rows is None:
+            self._rows = np.ascontiguousarray(np.asarray(self.array, np.float32).reshape(self.array.shape[0], -1))
+        return self._rows
 
     @property
     def quads(self):
@@ -105,6 +114,17 @@ def half_to_float(h):
     normal = dr.reinterpret_array(mi.Float, ((h & 0x7FFF) << 13) + (112 << 23))
     magnitude = dr.select((h & 0x7C00) == 0, mi.Float(h & 0x3FF) * (2.0 ** -24), normal)
     return dr.select((h & 0x8000) != 0, -magnitude, magnitude)
+
+
+def cpu_kernel() -> bool:
+    """Whether the renderer lights the exact path's fields with :mod:`.relight_cpu` instead of
+    :func:`lit_texels`: on the CPU variants (``llvm_*``) where Numba is importable, unless
+    ``MIFACERF_NUMBA_RELIGHT=0``."""
+    if not ensure_variant().variant().startswith("llvm"):
+        return False
+    from .relight_cpu import available
+
+    return available()
 
 
 def lit_texels(rf_device, n_lights: int, texels: np.ndarray, vertex_ids: np.ndarray, coef: np.ndarray,

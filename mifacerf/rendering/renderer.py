@@ -28,12 +28,12 @@ import numpy as np
 from ..camera import Camera
 from ..environment import DEFAULT_LIGHT_BASIS_METHOD, LIGHT_BASIS_METHODS, Environment
 from ..methods import lookup
-from ..jitarrays import from_jit, to_jit
+from ..jitarrays import aligned_empty, from_jit, to_jit
 from ..variant import ensure_plugins, ensure_variant
 from .chunks import FramePlan, plan_frame
 from .frame import LitFrame, facing_weights, resolve_pixels, traced_offset
 from .lighting import RotatedLightBasis
-from .relight import DeviceLighting
+from .relight import DeviceLighting, cpu_kernel
 from ..geometry.boubekeur2008 import check_curved
 from ..geometry.meshscene import CurvedMeshScene, MeshScene
 from ..geometry.rigid import apply
@@ -159,6 +159,7 @@ class Renderer:
         self.method_cache: dict = {}   # what a compression method keeps between frames (sh: environment coefficients)
         self._device: dict[tuple[int, int], object] = {}
         self._texel_maps: dict[tuple[int, int], tuple] = {}
+        self._cpu_maps: dict[tuple[int, int], tuple] = {}
         self._part_views: dict[tuple[str, int, str], dict | None] = {}
 
     # -------------------------------------------------------------- lighting
@@ -233,6 +234,8 @@ class Renderer:
         # each source's lighting laid out and uploaded once for all its chunks (one per capture camera)
         lighting = {s: DeviceLighting(L) for s, L in lighting.items()}
         stats.add_time("lighting", time.perf_counter() - t0)
+        if self.method == "exact" and cpu_kernel():
+            return self._light_frame_cpu(plan, lighting, keep, stats)
         chunks, lit_texels = [], []
         for chunk in plan.chunks:
             s, c = chunk.s, chunk.c
@@ -267,6 +270,63 @@ class Renderer:
         sources = {s: model.vertices[s] for s in plan.sources}
         return LitFrame(plan.target, model.triangles, chunks, sources, self.depth_tolerance, images=images,
                         depths=depths)
+
+    def _light_frame_cpu(self, plan: FramePlan, lighting: dict, keep, stats: RenderStats) -> LitFrame:
+        """:meth:`light_frame`'s chunks lit on the CPU in one call (:func:`.relight_cpu.lit_images`: the
+        exact sum, vectorised along each texel's lights), the images made on the host and handed to the
+        device once. The same texels and weights as the chunk-by-chunk path; the sums in another order
+        (float32 rounding apart, docs/rendering.md)."""
+        from .relight_cpu import lit_images
+
+        mi = ensure_variant()
+        model = self.model
+        t0 = time.perf_counter()
+        sources = list(lighting)
+        chunks, fields, maps, depths, chunk_light = [], [], [], [], []
+        weights = np.zeros((len(plan.chunks), model.n_vertices))
+        for i, chunk in enumerate(plan.chunks):
+            s, c = chunk.s, chunk.c
+            f = model.field(s, c)
+            if (f.expression, f.camera) not in stats.fields_loaded:
+                stats.fields_loaded.append((f.expression, f.camera))
+            fields.append(self._device_field(s, c).halves)
+            fv, lin, coverage, _ = self._texel_map(s, c, f)
+            maps.append(self._cpu_map(s, c, f, fv, lin, coverage))
+            depths.append(maps[-1][4])
+            weights[i] = chunk.weights + chunk.fallback            # lit wherever either tier may read it
+            chunk_light.append(sources.index(s))
+            cam = model.cameras[c]
+            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback,
+                           "shape": (cam.height, cam.width), "camera": cam})
+        stats.add_time("load", time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        sizes = [ch["shape"][0] * ch["shape"][1] for ch in chunks]
+        images, lit = lit_images(fields, [lighting[s].rows for s in sources], chunk_light, weights,
+                                 [m[:4] for m in maps], sizes, keep)
+        stats.chunks += len(chunks)
+        stats.texels += int(lit.sum())
+        depth = aligned_empty((max(int(sum(sizes)), 1),), np.float32)
+        if depths:
+            np.concatenate(depths, out=depth[:int(sum(sizes))])
+        else:
+            depth[:] = 0
+        frame = LitFrame(plan.target, model.triangles, chunks, {s: model.vertices[s] for s in plan.sources},
+                         self.depth_tolerance, images=mi.Float(images if len(images) else np.zeros(4, np.float32)),
+                         depths=mi.Float(depth))
+        stats.add_time("relight", time.perf_counter() - t0)
+        return frame
+
+    def _cpu_map(self, s: int, c: int, f, fv, lin, coverage) -> tuple:
+        """Field (s, c)'s texel map in the forms :func:`.relight_cpu.lit_images` reads (made once): bary
+        (N, 3) float32, vertex ids (N, 3) int64, pixel index (N,) int64, coverage (N,) float32, and the
+        depth map (H*W,) float32 on the host."""
+        key = (s, c)
+        if key not in self._cpu_maps:
+            from .relight_cpu import check_map
+
+            depth = np.ascontiguousarray(f.depth_map(), np.float32).reshape(-1)
+            self._cpu_maps[key] = check_map(f.bary, fv, lin, coverage, self.model.n_vertices, len(depth)) + (depth,)
+        return self._cpu_maps[key]
 
     # ------------------------------------------------------------ eyes, teeth
     def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats,

@@ -1,0 +1,82 @@
+"""Numba kernels of :mod:`.relight_cpu` (imported by it on first use: Numba loads only when a CPU render
+lights a field). The sum and its layout: :mod:`.relight_cpu`."""
+import numba
+import numpy as np
+
+u = np.uint32
+
+
+@numba.njit(cache=True, boundscheck=False, nogil=True)
+def lit_rows(field, light, ids, bary, fv, lin, cov, weights, images, offset, start, end):
+    """Rows ``start``…``end`` of one chunk's lit image (:func:`.relight_cpu.lit_images`): those texels of
+    ``field`` (rows, L·3) uint16 whose weight Σ_k b_k a_{v_k} is positive are lit and written, RGB and
+    coverage, to ``images`` (4 floats a pixel) from pixel ``offset`` on; returns how many. ``bary`` (rows,
+    3) float32, ``fv`` (rows, 3) int64, ``lin`` (rows,) pixel, ``cov`` (rows,) float32 the field's texel
+    map; ``weights`` (T,) float64 the chunk's vertex weights; ``light`` (V, K·3) float32 the lighting of
+    the lights ``ids`` (K,), all L lights when ``ids`` is empty. Serial and without the GIL: threads run
+    calls on disjoint rows at once (a field's texels are distinct pixels, so they write disjoint values)."""
+    J = field.shape[1]
+    K = ids.shape[0]
+    subset = K > 0
+    bits = np.empty(J, np.uint32)
+    f = np.empty(J, np.float32)
+    acc = np.empty(48, np.float32)
+    lit = 0
+    for t in range(start, end):
+        v0 = fv[t, 0]
+        v1 = fv[t, 1]
+        v2 = fv[t, 2]
+        w0 = np.float64(bary[t, 0]) * weights[v0]
+        w1 = np.float64(bary[t, 1]) * weights[v1]
+        w2 = np.float64(bary[t, 2]) * weights[v2]
+        ws = w0 + w1 + w2
+        if not ws > 0.0:
+            continue
+        lit += 1
+        c0 = np.float32(w0 / ws)
+        c1 = np.float32(w1 / ws)
+        c2 = np.float32(w2 / ws)
+        row = field[t]
+        for j in range(J):       # normal halves: the exponent rebiased by 112
+            h = u(row[j])
+            bits[j] = (((h & u(0x7FFF)) << u(13)) + u(112 << 23)) | ((h & u(0x8000)) << u(16))
+        normal = bits.view(np.float32)
+        for j in range(J):       # zero and subnormal halves: the 10-bit integer times 2^-24
+            h = u(row[j])
+            s = np.float32(h & u(0x3FF)) * np.float32(2.0 ** -24)
+            s = -s if (h & u(0x8000)) != u(0) else s
+            f[j] = normal[j] if (h & u(0x7C00)) != u(0) else s
+        L0 = light[v0]
+        L1 = light[v1]
+        L2 = light[v2]
+        r = np.float32(0)
+        g = np.float32(0)
+        bb = np.float32(0)
+        if subset:
+            for k in range(K):
+                o = ids[k] * 3
+                q = 3 * k
+                r += f[o] * (c0 * L0[q] + c1 * L1[q] + c2 * L2[q])
+                g += f[o + 1] * (c0 * L0[q + 1] + c1 * L1[q + 1] + c2 * L2[q + 1])
+                bb += f[o + 2] * (c0 * L0[q + 2] + c1 * L1[q + 2] + c2 * L2[q + 2])
+        else:
+            for k in range(48):
+                acc[k] = 0.0
+            for b in range(J // 48):     # 48 independent sums: 3 channels x 16 lanes
+                for k in range(48):
+                    j = b * 48 + k
+                    acc[k] += f[j] * (c0 * L0[j] + c1 * L1[j] + c2 * L2[j])
+            for k in range(16):
+                r += acc[3 * k]
+                g += acc[3 * k + 1]
+                bb += acc[3 * k + 2]
+            for j in range(J - J % 48, J, 3):     # L not a multiple of 16: the rest
+                r += f[j] * (c0 * L0[j] + c1 * L1[j] + c2 * L2[j])
+                g += f[j + 1] * (c0 * L0[j + 1] + c1 * L1[j + 1] + c2 * L2[j + 1])
+                bb += f[j + 2] * (c0 * L0[j + 2] + c1 * L1[j + 2] + c2 * L2[j + 2])
+        p = (offset + lin[t]) * 4
+        images[p] = r
+        images[p + 1] = g
+        images[p + 2] = bb
+        images[p + 3] = cov[t]
+    return lit
