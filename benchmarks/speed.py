@@ -40,12 +40,14 @@ import numpy as np
 
 def renderer_for(face, config: str):
     """A configuration name (``exact``, ``<method><rank>``: ``sh4``, ``pca8``; a suffix ``/c<n>`` traces the
-    surface at Phong level n instead of the model's own, ``/c1`` flat: ``exact/c1``) → a Renderer of the model."""
+    surface at Phong level n instead of the model's own, ``/c1`` flat: ``exact/c1``; a last suffix ``/dr``
+    relights with Dr.Jit's kernel instead of the CPU one, ``exact/dr``) → a Renderer of the model."""
     import re
 
     from mifacerf.rendering.renderer import Renderer
 
-    name, _, level = config.partition("/c")
+    drjit = config.endswith("/dr")
+    name, _, level = config.removesuffix("/dr").partition("/c")
     if level and not level.isdigit():
         raise SystemExit(f"unknown configuration {config!r}: the surface suffix is /c<level>, e.g. exact/c1")
     surface = {"curved": int(level)} if level else {}
@@ -57,6 +59,8 @@ def renderer_for(face, config: str):
             raise SystemExit(f"unknown configuration {config!r} (exact, or <method><rank> such as sh4, pca8)")
         r = Renderer(face.model, method=m[1], rank=int(m[2]), **surface)
     r.cache_frames = False
+    if drjit:
+        r.cpu_relight = False
     return r
 
 

@@ -160,6 +160,9 @@ class Renderer:
         self._device: dict[tuple[int, int], object] = {}
         self._texel_maps: dict[tuple[int, int], tuple] = {}
         self._cpu_maps: dict[tuple[int, int], tuple] = {}
+        # the exact path's relight sum on the CPU (relight_cpu, Numba) or Dr.Jit's kernel: None chooses
+        # (relight.cpu_kernel: llvm variants with Numba, unless MIFACERF_NUMBA_RELIGHT=0); False: Dr.Jit's
+        self.cpu_relight: bool | None = None
         self._part_views: dict[tuple[str, int, str], dict | None] = {}
 
     # -------------------------------------------------------------- lighting
@@ -234,7 +237,7 @@ class Renderer:
         # each source's lighting laid out and uploaded once for all its chunks (one per capture camera)
         lighting = {s: DeviceLighting(L) for s, L in lighting.items()}
         stats.add_time("lighting", time.perf_counter() - t0)
-        if self.method == "exact" and cpu_kernel():
+        if self.method == "exact" and (cpu_kernel() if self.cpu_relight is None else self.cpu_relight):
             return self._light_frame_cpu(plan, lighting, keep, stats)
         chunks, lit_texels = [], []
         for chunk in plan.chunks:
