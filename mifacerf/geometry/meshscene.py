@@ -53,7 +53,9 @@ class MeshScene:
         self._params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(self.faces.T, dtype=np.uint32)))
         self.set_vertices(vertices, update=False)
         self._params.update()
-        self.scene = mi.load_dict({"type": "scene", "mesh": self.mesh})
+        # not in parallel: a plugin (facerf, facerf_bsdf) builds these while Mitsuba loads its scene on the
+        # thread pool, and a parallel load inside that one is a nested load (one full-suite run hung there once)
+        self.scene = mi.load_dict({"type": "scene", "mesh": self.mesh}, parallel=False)
         self._scene_params = mi.traverse(self.scene)
 
     def set_vertices(self, vertices: np.ndarray, update: bool = True) -> None:

@@ -86,7 +86,7 @@ def _mesh_scene(vertices, triangles):
     params["vertex_positions"] = to_jit(mi.Float, V.reshape(-1).astype(np.float32))
     params["faces"] = to_jit(mi.UInt32, F.reshape(-1).astype(np.uint32))
     params.update()
-    return mi, mi.load_dict({"type": "scene", "mesh": mesh}), V, F
+    return mi, mi.load_dict({"type": "scene", "mesh": mesh}, parallel=False), V, F   # not nested (meshscene.py)
 
 
 def trace(vertices: np.ndarray, triangles: np.ndarray, directions: np.ndarray, eps: float = EPS) -> np.ndarray:
