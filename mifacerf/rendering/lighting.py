@@ -43,6 +43,15 @@ from ..environment import DEFAULT_LIGHT_BASIS_METHOD, Environment, light_basis, 
 from ..variant import ensure_variant
 
 
+def _trilinear_kernel():
+    """:func:`._numba_kernels.trilinear_rows` where Numba serves (:func:`.relight_cpu.kernels`), else None
+    (the NumPy loop, the same values)."""
+    from .relight_cpu import kernels
+
+    k = kernels()
+    return None if k is None else k["trilinear"]
+
+
 def prefilter(env: Environment, sigma_rad: float) -> np.ndarray:
     """Blur a lat-long map by about ``sigma_rad`` on the sphere (wider in u towards the poles).
 
@@ -201,15 +210,19 @@ class RotatedLightBasis:
             i0 = np.minimum(np.floor(x).astype(np.int64), self.grid_n - 1)
             f = x - i0
             acc = np.zeros((len(x), self.n_lights, 3))
-            term = np.empty_like(acc)     # one buffer for every corner's term (no temporaries)
             corners = [np.array([(c >> 2) & 1, (c >> 1) & 1, c & 1]) for c in range(8)]
             rows = self._node_rows(np.concatenate([i0 + o for o in corners]))
             rows = rows.reshape(8, len(x))
-            for c, o in enumerate(corners):
-                wgt = np.prod(np.where(o, f, 1 - f), axis=1)
-                np.take(self._node_values, rows[c], axis=0, out=term)
-                term *= wgt[:, None, None]
-                acc += term
+            wgts = np.stack([np.prod(np.where(o, f, 1 - f), axis=1) for o in corners])
+            kern = _trilinear_kernel()
+            if kern is not None and self._node_values.dtype == np.float64:   # the same sums, 4-5x faster
+                kern(self._node_values, np.ascontiguousarray(rows, np.int64), wgts, acc)
+            else:
+                term = np.empty_like(acc)     # one buffer for every corner's term (no temporaries)
+                for c in range(8):
+                    np.take(self._node_values, rows[c], axis=0, out=term)
+                    term *= wgts[c][:, None, None]
+                    acc += term
             out[rest[in_grid]] = acc
         return out
 

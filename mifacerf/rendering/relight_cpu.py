@@ -42,6 +42,12 @@ def available() -> bool:
     return _kernels() is not None
 
 
+def kernels() -> dict | None:
+    """The Numba kernels by name (``rows``: the relight sum; ``trilinear``: the rotated light basis' node
+    blend), or None where Numba is not importable or ``MIFACERF_NUMBA_RELIGHT=0``."""
+    return _kernels() if available() else None
+
+
 def _kernels():
     global _KERNELS, _UNAVAILABLE
     if _KERNELS is not None or _UNAVAILABLE is not None:
@@ -51,9 +57,9 @@ def _kernels():
     except ImportError as e:      # an optional speed-up: Dr.Jit's kernel serves without it
         _UNAVAILABLE = str(e)
         return None
-    from . import _numba_relight as k
+    from . import _numba_kernels as k
 
-    _KERNELS = {"rows": k.lit_rows}
+    _KERNELS = {"rows": k.lit_rows, "trilinear": k.trilinear_rows}
     return _KERNELS
 
 

@@ -165,3 +165,21 @@ def test_renderer_takes_the_light_basis_by_name(toy_model):
         assert 10 * np.log10(lit[inside].max() ** 2 / err) > 50.0, method   # the texels themselves
         refs[method] = lit
     assert np.abs(refs["hat"] - refs["voronoi"]).max() > 0.01 * refs["voronoi"].max()   # two different rules
+
+
+def test_the_numba_node_blend_is_the_numpy_loops_bit_for_bit(setup, monkeypatch):
+    """``rotated``'s trilinear blend of grid nodes through Numba (``_numba_kernels.trilinear_rows``) and
+    through the NumPy loop (``MIFACERF_NUMBA_RELIGHT=0``): the same float64 values, to the bit, for
+    rotations inside the grid, on its nodes and beyond it."""
+    pytest.importorskip("numba")
+    from scipy.spatial.transform import Rotation
+
+    ls, env, rb = setup
+    rng = np.random.default_rng(3)
+    R = np.concatenate([Rotation.from_rotvec(rng.normal(scale=np.radians(8), size=(40, 3))).as_matrix(),
+                        Rotation.from_rotvec([[np.radians(3), 0, 0], [0, np.radians(-6), 0]]).as_matrix(),
+                        np.eye(3)[None]])
+    monkeypatch.setenv("MIFACERF_NUMBA_RELIGHT", "0")
+    plain = rb.rotated(R)
+    monkeypatch.setenv("MIFACERF_NUMBA_RELIGHT", "1")
+    np.testing.assert_array_equal(rb.rotated(R), plain)

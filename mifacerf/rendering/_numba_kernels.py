@@ -1,5 +1,6 @@
-"""Numba kernels of :mod:`.relight_cpu` (imported by it on first use: Numba loads only when a CPU render
-lights a field). The sum and its layout: :mod:`.relight_cpu`."""
+"""Numba kernels, imported on first use (:func:`.relight_cpu.kernels`: Numba loads only when a render
+needs them): the exact relight sum (:func:`lit_rows`; its layout: :mod:`.relight_cpu`) and the rotated
+light basis' trilinear blend of grid nodes (:func:`trilinear_rows`, :meth:`.lighting.RotatedLightBasis.rotated`)."""
 import numba
 import numpy as np
 
@@ -80,3 +81,24 @@ def lit_rows(field, light, ids, bary, fv, lin, cov, weights, images, offset, sta
         images[p + 2] = bb
         images[p + 3] = cov[t]
     return lit
+
+
+@numba.njit(cache=True, boundscheck=False, nogil=True)
+def trilinear_rows(values, rows, weights, out):
+    """``out[p] = Σ_c weights[c, p] · values[rows[c, p]]`` over the 8 corners c in order, each product
+    added to a sum that starts at 0 — the same float64 operations, in the same order, as the NumPy loop of
+    :meth:`.lighting.RotatedLightBasis.rotated` (so the same values bit for bit), without its (P, L, 3)
+    temporaries. ``values`` (N, L, 3) float64, ``rows`` (8, P) int64, ``weights`` (8, P) float64, ``out``
+    (P, L, 3) float64."""
+    P = rows.shape[1]
+    L = values.shape[1]
+    for p in range(P):
+        for j in range(L):
+            for k in range(3):
+                out[p, j, k] = 0.0
+        for c in range(8):
+            w = weights[c, p]
+            r = rows[c, p]
+            for j in range(L):
+                for k in range(3):
+                    out[p, j, k] += values[r, j, k] * w
