@@ -11,24 +11,21 @@ from __future__ import annotations
 import numpy as np
 
 
-def aligned_empty(shape, dtype, alignment: int = 64) -> np.ndarray:
+def aligned_empty(shape, dtype, alignment: int = 64, zeros: bool = False) -> np.ndarray:
     """An uninitialised C-contiguous array of ``shape`` and ``dtype`` whose data pointer is ``alignment``-aligned
-    (to be filled in place, e.g. by ``np.concatenate(..., out=)``, and handed to Dr.Jit without another copy)."""
+    (to be filled in place, e.g. by ``np.concatenate(..., out=)``, and handed to Dr.Jit without another copy).
+    ``zeros``: filled with zeros by the allocator (a large buffer's pages are the system's zero pages until
+    written, so an image that is mostly left empty costs only what is written)."""
     dtype = np.dtype(dtype)
     nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    buf = np.empty(nbytes + alignment, np.uint8)
+    buf = (np.zeros if zeros else np.empty)(nbytes + alignment, np.uint8)
     off = (-buf.ctypes.data) % alignment
     return buf[off:off + nbytes].view(dtype).reshape(shape)
 
 
 def aligned_zeros(shape, dtype, alignment: int = 64) -> np.ndarray:
-    """As :func:`aligned_empty`, filled with zeros (by the allocator: a large buffer's pages are the
-    system's zero pages until written, so an image that is mostly left empty costs only what is written)."""
-    dtype = np.dtype(dtype)
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    buf = np.zeros(nbytes + alignment, np.uint8)
-    off = (-buf.ctypes.data) % alignment
-    return buf[off:off + nbytes].view(dtype).reshape(shape)
+    """:func:`aligned_empty` filled with zeros."""
+    return aligned_empty(shape, dtype, alignment, zeros=True)
 
 
 def aligned(array, dtype, alignment: int = 64) -> np.ndarray:

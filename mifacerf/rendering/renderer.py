@@ -192,7 +192,8 @@ class Renderer:
         """Field (s, c)'s texel vertices (N, 3) and what its lit image needs on the device, made once
         (read-only; a frame reads them, never writes): the texels' pixel indices (N,) uint32, their
         coverage (N,) float32 (1; −1 on the field's outline, :func:`.frame.outline_texels`, as
-        :func:`.frame.mark_outline` marks it) and the depth map (Float, H*W, +inf where no texel)."""
+        :func:`.frame.mark_outline` marks it), the depth map (Float, H*W, +inf where no texel) and the same
+        depth map on the host ((H*W,) float32, which the CPU relight path hands over)."""
         key = (s, c)
         if key not in self._texel_maps:
             from .frame import outline_texels
@@ -202,9 +203,10 @@ class Renderer:
             depth = f.depth_map()
             lin = (f.pixels[:, 0] * depth.shape[1] + f.pixels[:, 1]).astype(np.uint32)
             coverage = np.where(outline_texels(depth).reshape(-1)[lin], -1.0, 1.0).astype(np.float32)
-            for a in (fv, lin, coverage):
+            host = np.ascontiguousarray(depth, np.float32).reshape(-1)
+            for a in (fv, lin, coverage, host):
                 a.flags.writeable = False
-            self._texel_maps[key] = (fv, lin, coverage, to_jit(mi.Float, depth.reshape(-1)))
+            self._texel_maps[key] = (fv, lin, coverage, to_jit(mi.Float, host), host)
         return self._texel_maps[key]
 
     # ----------------------------------------------------------------- frame
@@ -243,13 +245,11 @@ class Renderer:
         for chunk in plan.chunks:
             s, c = chunk.s, chunk.c
             t0 = time.perf_counter()
-            f = model.field(s, c)  # the texel map (the memory-mapped exact data is not read for 'pca')
-            if (f.expression, f.camera) not in stats.fields_loaded:
-                stats.fields_loaded.append((f.expression, f.camera))
+            f = self._field_of(chunk, stats)  # the texel map (the memory-mapped exact data is not read for 'pca')
             data = self._device_field(s, c)
             stats.add_time("load", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            fv, lin, coverage, depth = self._texel_map(s, c, f)
+            fv, lin, coverage, depth, _ = self._texel_map(s, c, f)
             wv = chunk.weights + chunk.fallback            # lit wherever either tier may read it
             # the texels on triangles with a weight at a vertex (the others' weight sums are 0), in texel order
             near = np.flatnonzero((wv[model.triangles] > 0).any(axis=1)[f.tri])
@@ -260,9 +260,7 @@ class Renderer:
             coef = wt[keep_t] / wsum_t[keep_t, None]
             # launched now, placed below: the chunks' kernels run while the next ones are prepared
             lit = self.compression.lit(data, len(self.light_directions), active, fv[active], coef, lighting[s], keep)
-            cam = model.cameras[c]
-            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback,
-                           "shape": (cam.height, cam.width), "camera": cam})
+            chunks.append(self._chunk_entry(chunk))
             lit_texels.append((lit, lin[active], coverage[active], depth))
             stats.chunks += 1
             stats.texels += len(active)
@@ -289,23 +287,18 @@ class Renderer:
         weights = np.zeros((len(plan.chunks), model.n_vertices))
         for i, chunk in enumerate(plan.chunks):
             s, c = chunk.s, chunk.c
-            f = model.field(s, c)
-            if (f.expression, f.camera) not in stats.fields_loaded:
-                stats.fields_loaded.append((f.expression, f.camera))
+            f = self._field_of(chunk, stats)
             fields.append(self._device_field(s, c).halves)
-            fv, lin, coverage, _ = self._texel_map(s, c, f)
-            maps.append(self._cpu_map(s, c, f, fv, lin, coverage))
-            depths.append(maps[-1][4])
+            maps.append(self._cpu_map(s, c, f))
+            depths.append(self._texel_map(s, c, f)[4])
             weights[i] = chunk.weights + chunk.fallback            # lit wherever either tier may read it
             chunk_light.append(sources.index(s))
-            cam = model.cameras[c]
-            chunks.append({"s": s, "c": c, "weights": chunk.weights, "fallback": chunk.fallback,
-                           "shape": (cam.height, cam.width), "camera": cam})
+            chunks.append(self._chunk_entry(chunk))
         stats.add_time("load", time.perf_counter() - t0)
         t0 = time.perf_counter()
         sizes = [ch["shape"][0] * ch["shape"][1] for ch in chunks]
-        images, lit = lit_images(fields, [lighting[s].rows for s in sources], chunk_light, weights,
-                                 [m[:4] for m in maps], sizes, keep)
+        images, lit = lit_images(fields, [lighting[s].rows for s in sources], chunk_light, weights, maps, sizes,
+                                 keep)
         stats.chunks += len(chunks)
         stats.texels += int(lit.sum())
         depth = aligned_empty((max(int(sum(sizes)), 1),), np.float32)
@@ -319,17 +312,30 @@ class Renderer:
         stats.add_time("relight", time.perf_counter() - t0)
         return frame
 
-    def _cpu_map(self, s: int, c: int, f, fv, lin, coverage) -> tuple:
-        """Field (s, c)'s texel map in the forms :func:`.relight_cpu.lit_images` reads (made once): bary
-        (N, 3) float32, vertex ids (N, 3) int64, pixel index (N,) int64, coverage (N,) float32, and the
-        depth map (H*W,) float32 on the host."""
+    def _cpu_map(self, s: int, c: int, f) -> tuple:
+        """Field (s, c)'s texel map in the forms :func:`.relight_cpu.lit_images` reads, its indices checked
+        (made once): bary (N, 3) float32, vertex ids (N, 3) int64, pixel index (N,) int64, coverage (N,)
+        float32."""
         key = (s, c)
         if key not in self._cpu_maps:
             from .relight_cpu import check_map
 
-            depth = np.ascontiguousarray(f.depth_map(), np.float32).reshape(-1)
-            self._cpu_maps[key] = check_map(f.bary, fv, lin, coverage, self.model.n_vertices, len(depth)) + (depth,)
+            fv, lin, coverage, _, depth = self._texel_map(s, c, f)
+            self._cpu_maps[key] = check_map(f.bary, fv, lin, coverage, self.model.n_vertices, len(depth))
         return self._cpu_maps[key]
+
+    def _field_of(self, chunk, stats: RenderStats):
+        """The field (texel map) of ``chunk``'s (source, camera), noted in ``stats.fields_loaded``."""
+        f = self.model.field(chunk.s, chunk.c)
+        if (f.expression, f.camera) not in stats.fields_loaded:
+            stats.fields_loaded.append((f.expression, f.camera))
+        return f
+
+    def _chunk_entry(self, chunk) -> dict:
+        """``chunk`` as :class:`.frame.LitFrame` takes it (its tiers' weights, image shape and camera)."""
+        cam = self.model.cameras[chunk.c]
+        return {"s": chunk.s, "c": chunk.c, "weights": chunk.weights, "fallback": chunk.fallback,
+                "shape": (cam.height, cam.width), "camera": cam}
 
     # ------------------------------------------------------------ eyes, teeth
     def part_frame(self, parts: dict, camera: Camera, basis: RotatedLightBasis, stats: RenderStats,
