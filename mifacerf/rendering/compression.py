@@ -206,21 +206,70 @@ def _lit_exact(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
     return lit_texels(data, n_lights, texels, vertex_ids, coef, lighting, keep, later=True)
 
 
-def _load_pca(model, s: int, c: int, rank: int, lights):
-    from .relight import to_device_f16
+class PcaField:
+    """A ``pca`` field ready to light: ``comp`` its arrays (:func:`compress_field`); ``device`` the
+    coefficients on the device (flat Float16, what :func:`lit_texels_pca` reads); ``halves`` (N, (K+1)·3)
+    float16 the same coefficients laid out as the exact kernel's rows (:func:`_rows_pca`). The two forms
+    are made on first use: a renderer reads one of them."""
 
-    comp = model.compressed_field(s, c, rank, "pca")
-    return comp, to_device_f16(comp["coeff"])
+    def __init__(self, comp: dict):
+        self.comp = comp
+        self._device = self._halves = None
+
+    @property
+    def rank(self) -> int:
+        return int(self.comp["basis"].shape[0])
+
+    @property
+    def device(self):
+        if self._device is None:
+            from .relight import to_device_f16
+
+            self._device = to_device_f16(self.comp["coeff"])
+        return self._device
+
+    @property
+    def halves(self) -> np.ndarray:
+        if self._halves is None:
+            c = np.asarray(self.comp["coeff"], np.float16)
+            rows = np.empty((len(c), self.rank + 1, 3), np.float16)
+            rows[:, 0] = 1.0                      # the mean's term (1 is exact in float16)
+            rows[:, 1:] = c[:, :, None]            # each coefficient once per colour
+            rows.flags.writeable = False
+            self._halves = rows.reshape(len(c), -1)
+        return self._halves
+
+    def projected(self, lighting, keep) -> tuple[np.ndarray, np.ndarray]:
+        """``m_v`` (V, 3) and ``β_v`` (V, K, 3): the per-vertex lighting (V, L, 3) (of the lights ``keep``,
+        None for all) projected on the field's mean and basis."""
+        lighting = np.asarray(lighting)
+        mean, basis = self.comp["mean"], self.comp["basis"]
+        if keep is not None:
+            mean, basis = mean[keep], basis[:, keep]
+        return np.einsum("vlc,lc->vc", lighting, mean), np.einsum("vlc,klc->vkc", lighting, basis)
+
+
+def _load_pca(model, s: int, c: int, rank: int, lights):
+    return PcaField(model.compressed_field(s, c, rank, "pca"))
 
 
 def _lit_pca(data, n_lights: int, texels, vertex_ids, coef, lighting, keep):
-    comp, dev = data
-    lighting = np.asarray(lighting)
-    if keep is not None:
-        comp = {"coeff": comp["coeff"], "mean": comp["mean"][keep], "basis": comp["basis"][:, keep]}
-    m_v = np.einsum("vlc,lc->vc", lighting, comp["mean"])
-    beta_v = np.einsum("vlc,klc->vkc", lighting, comp["basis"])
-    return lit_texels_pca(dev, comp["basis"].shape[0], texels, vertex_ids, coef, m_v, beta_v)
+    m_v, beta_v = data.projected(lighting, keep)
+    return lit_texels_pca(data.device, data.rank, texels, vertex_ids, coef, m_v, beta_v)
+
+
+def _rows_halves(data, lighting, keep):
+    """A field of :class:`.relight.HalfWords` (``exact``: L lights; ``sh``: J coefficients) as the CPU
+    kernel's rows, against the per-vertex lighting's rows."""
+    return data.halves, lighting.rows, keep
+
+
+def _rows_pca(data, lighting, keep):
+    """A ``pca`` field as the exact kernel's rows: the texel's row (1, C_1 … C_K), each once per colour,
+    against the vertex's (m_v, β_v) — ``Σ_i ĉ_i (m_{v_i} + Σ_k C[x, k] β_{v_i}[k])``, the same sum."""
+    m_v, beta_v = data.projected(lighting, keep)
+    light = np.concatenate([m_v[:, None], beta_v], axis=1).astype(np.float32)
+    return data.halves, np.ascontiguousarray(light.reshape(len(light), -1)), None
 
 
 def _compress_pca(rf, ranks, light_directions):
@@ -243,7 +292,11 @@ class CompressionMethod:
     * ``lighting(renderer, env, rotations (P, 3, 3)) -> (P, K, 3)``: the per-(vertex, source) lighting
       ``lit`` takes, when it is not the light stage's rotated basis (:mod:`.lighting`, None): ``sh``
       rotates the environment's coefficients (:mod:`.sh_fields`). Negligible lights are skipped only in
-      the light stage's basis.
+      the light stage's basis;
+    * ``rows(data, lighting (DeviceLighting), keep) -> (field (N, J) float16, light (V, J) float32, ids)``:
+      the same sum as ``lit`` laid out for the CPU kernel (:func:`.relight_cpu.lit_images`: a texel's
+      row of J halves against its vertices' rows of J floats, ``ids`` the J/3 lights kept or None), used
+      on the CPU variants where Numba is importable (:func:`.relight.cpu_kernel`); None: ``lit`` only.
     """
 
     compress: Callable | None
@@ -251,13 +304,14 @@ class CompressionMethod:
     lit: Callable
     light_subsets: bool = False
     lighting: Callable | None = None
+    rows: Callable | None = None
 
 
 #: how a renderer stores and lights a field: name → :class:`CompressionMethod`; the first is the default
 COMPRESSION_METHODS = {
-    "exact": CompressionMethod(None, _load_exact, _lit_exact, light_subsets=True),
-    "pca": CompressionMethod(_compress_pca, _load_pca, _lit_pca),
-    "sh": CompressionMethod(compress_sh, load_sh, lit_sh, lighting=lighting_sh),
+    "exact": CompressionMethod(None, _load_exact, _lit_exact, light_subsets=True, rows=_rows_halves),
+    "pca": CompressionMethod(_compress_pca, _load_pca, _lit_pca, rows=_rows_pca),
+    "sh": CompressionMethod(compress_sh, load_sh, lit_sh, lighting=lighting_sh, rows=_rows_halves),
 }
 DEFAULT_COMPRESSION_METHOD = "exact"
 

@@ -160,7 +160,7 @@ class Renderer:
         self._device: dict[tuple[int, int], object] = {}
         self._texel_maps: dict[tuple[int, int], tuple] = {}
         self._cpu_maps: dict[tuple[int, int], tuple] = {}
-        # the exact path's relight sum on the CPU (relight_cpu, Numba) or Dr.Jit's kernel: None chooses
+        # the relight sum on the CPU (relight_cpu, Numba; every method with ``rows``) or Dr.Jit's kernel: None chooses
         # (relight.cpu_kernel: llvm variants with Numba, unless MIFACERF_NUMBA_RELIGHT=0); False: Dr.Jit's
         self.cpu_relight: bool | None = None
         self._part_views: dict[tuple[str, int, str], dict | None] = {}
@@ -239,7 +239,7 @@ class Renderer:
         # each source's lighting laid out and uploaded once for all its chunks (one per capture camera)
         lighting = {s: DeviceLighting(L) for s, L in lighting.items()}
         stats.add_time("lighting", time.perf_counter() - t0)
-        if self.method == "exact" and (cpu_kernel() if self.cpu_relight is None else self.cpu_relight):
+        if self.compression.rows is not None and (cpu_kernel() if self.cpu_relight is None else self.cpu_relight):
             return self._light_frame_cpu(plan, lighting, keep, stats)
         chunks, lit_texels = [], []
         for chunk in plan.chunks:
@@ -274,31 +274,39 @@ class Renderer:
 
     def _light_frame_cpu(self, plan: FramePlan, lighting: dict, keep, stats: RenderStats) -> LitFrame:
         """:meth:`light_frame`'s chunks lit on the CPU in one call (:func:`.relight_cpu.lit_images`: the
-        exact sum, vectorised along each texel's lights), the images made on the host and handed to the
-        device once. The same texels and weights as the chunk-by-chunk path; the sums in another order
-        (float32 rounding apart, docs/rendering.md)."""
+        method's sum, vectorised along each texel's row — the exact path's lights, ``sh``'s coefficients,
+        ``pca``'s components: :attr:`.compression.CompressionMethod.rows`), the images made on the host and
+        handed to the device once. The same texels and weights as the chunk-by-chunk path; the sums in
+        another order (float32 rounding apart, docs/rendering.md)."""
         from .relight_cpu import lit_images
 
         mi = ensure_variant()
         model = self.model
         t0 = time.perf_counter()
-        sources = list(lighting)
-        chunks, fields, maps, depths, chunk_light = [], [], [], [], []
+        chunks, fields, maps, depths, chunk_light, lights = [], [], [], [], [], []
+        light_index: dict[int, int] = {}     # id of a lighting's rows → its place in ``lights``
+        ids, t_rows = keep, 0.0
         weights = np.zeros((len(plan.chunks), model.n_vertices))
         for i, chunk in enumerate(plan.chunks):
             s, c = chunk.s, chunk.c
             f = self._field_of(chunk, stats)
-            fields.append(self._device_field(s, c).halves)
+            data = self._device_field(s, c)
+            t1 = time.perf_counter()
+            field, light, ids = self.compression.rows(data, lighting[s], keep)
+            t_rows += time.perf_counter() - t1     # (pca projects the lighting per field: relight's work)
+            fields.append(field)
+            if id(light) not in light_index:   # a source's chunks share its rows (exact, sh); pca: one per field
+                light_index[id(light)] = len(lights)
+                lights.append(light)
+            chunk_light.append(light_index[id(light)])
             maps.append(self._cpu_map(s, c, f))
             depths.append(self._texel_map(s, c, f)[4])
             weights[i] = chunk.weights + chunk.fallback            # lit wherever either tier may read it
-            chunk_light.append(sources.index(s))
             chunks.append(self._chunk_entry(chunk))
-        stats.add_time("load", time.perf_counter() - t0)
-        t0 = time.perf_counter()
+        stats.add_time("load", time.perf_counter() - t0 - t_rows)
+        t0 = time.perf_counter() - t_rows
         sizes = [ch["shape"][0] * ch["shape"][1] for ch in chunks]
-        images, lit = lit_images(fields, [lighting[s].rows for s in sources], chunk_light, weights, maps, sizes,
-                                 keep)
+        images, lit = lit_images(fields, lights, chunk_light, weights, maps, sizes, ids)
         stats.chunks += len(chunks)
         stats.texels += int(lit.sum())
         depth = aligned_empty((max(int(sum(sizes)), 1),), np.float32)

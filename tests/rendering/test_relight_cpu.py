@@ -138,3 +138,51 @@ def test_switched_off_and_threads(monkeypatch):
     monkeypatch.delenv("MIFACERF_NUMBA_RELIGHT")
     assert relight_cpu.available()
     assert relight_cpu.threads() >= 1
+
+
+@pytest.mark.parametrize("method, rank", [("sh", 2), ("pca", 5)])
+def test_compressed_frames_match_drjits_kernel(toy_model, tmp_path, monkeypatch, method, rank):
+    """The compressed methods through the CPU kernel (their ``rows``: ``sh``'s coefficients as a field of
+    J lights, ``pca``'s (1, C_1 … C_K) against (m_v, β_v)) and through their Dr.Jit kernels: the same
+    coverage, texels and chunks, colours to float32 rounding; and a wrong layout would not pass (the pca
+    rows with the mean's term dropped are visibly off)."""
+    import shutil
+
+    from mifacerf import environment as E
+    from mifacerf.camera import Camera
+    from mifacerf.rendering import compression as C
+    from mifacerf.rendering.model import Model
+    from mifacerf.rendering.renderer import Renderer, RenderStats
+
+    shutil.copytree(toy_model.root, tmp_path / "model")
+    model = Model(tmp_path / "model")
+    C.compress_model(model, rank, progress=False, method=method)
+    W = np.zeros((model.n_vertices, len(model.expressions)))
+    W[:, 0], W[:, 1] = 0.4, 0.6
+    target = 0.4 * model.vertices[0] + 0.6 * model.vertices[1]
+    cam = Camera.look_at("novel", [0.2, 0.1, 1.2], [0, 0, 0], width=40, height=40, focal=50.0)
+    env = E.generated("interior", 32)
+    out = {}
+    for flag in ("1", "0"):
+        monkeypatch.setenv("MIFACERF_NUMBA_RELIGHT", flag)
+        st = RenderStats()
+        out[flag] = (Renderer(model, method=method, rank=rank).render(target, W, cam, env, spp=2, stats=st), st)
+    (a, sa), (b, sb) = out["1"], out["0"]
+    assert sa.texels > 0 and (sa.texels, sa.chunks) == (sb.texels, sb.chunks)
+    np.testing.assert_array_equal(a[..., 3], b[..., 3])
+    np.testing.assert_allclose(a[..., :3], b[..., :3], rtol=2e-5, atol=2e-6 * b[..., :3].max())
+    if method == "pca":      # the oracle can tell: the mean's term left out of the rows changes the image
+        rows = C.COMPRESSION_METHODS["pca"].rows
+
+        def no_mean(data, lighting, keep):
+            f, light, ids = rows(data, lighting, keep)
+            light = light.copy()
+            light[:, :3] = 0
+            return f, light, ids
+
+        monkeypatch.setenv("MIFACERF_NUMBA_RELIGHT", "1")
+        r = Renderer(model, method=method, rank=rank)
+        monkeypatch.setattr(r, "compression", C.CompressionMethod(None, r.compression.load, r.compression.lit,
+                                                                  rows=no_mean))
+        bad = r.render(target, W, cam, env, spp=2)
+        assert np.abs(bad[..., :3] - b[..., :3]).max() > 0.1 * b[..., :3].max()
