@@ -242,11 +242,15 @@ class PcaField:
     def projected(self, lighting, keep) -> tuple[np.ndarray, np.ndarray]:
         """``m_v`` (V, 3) and ``β_v`` (V, K, 3): the per-vertex lighting (V, L, 3) (of the lights ``keep``,
         None for all) projected on the field's mean and basis."""
-        lighting = np.asarray(lighting)
+        lighting = np.asarray(lighting, np.float32)
         mean, basis = self.comp["mean"], self.comp["basis"]
         if keep is not None:
             mean, basis = mean[keep], basis[:, keep]
-        return np.einsum("vlc,lc->vc", lighting, mean), np.einsum("vlc,klc->vkc", lighting, basis)
+        # per colour, (V, L) @ (L, K + 1): one BLAS product (einsum's loops took 8 ms a field, 140 ms a frame)
+        mb = np.concatenate([mean[None], basis], axis=0).astype(np.float32)       # (K + 1, L, 3)
+        out = np.matmul(lighting.transpose(2, 0, 1), mb.transpose(2, 1, 0))       # (3, V, K + 1)
+        out = out.transpose(1, 2, 0)                                                # (V, K + 1, 3)
+        return out[:, 0], out[:, 1:]
 
 
 def _load_pca(model, s: int, c: int, rank: int, lights):
