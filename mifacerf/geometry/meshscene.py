@@ -51,14 +51,24 @@ class MeshScene:
         self.mesh = mi.Mesh("mesh", len(vertices), len(self.faces))
         self._params = mi.traverse(self.mesh)
         self._params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(self.faces.T, dtype=np.uint32)))
+        self._pending = False
         self.set_vertices(vertices, update=False)
         self._params.update()
         # not in parallel: a plugin (facerf, facerf_bsdf) builds these while Mitsuba loads its scene on the
         # thread pool, and a parallel load inside that one is a nested load (one full-suite run hung there once)
-        self.scene = mi.load_dict({"type": "scene", "mesh": self.mesh}, parallel=False)
-        self._scene_params = mi.traverse(self.scene)
+        self._scene = mi.load_dict({"type": "scene", "mesh": self.mesh}, parallel=False)
+        self._scene_params = mi.traverse(self._scene)
 
-    def set_vertices(self, vertices: np.ndarray, update: bool = True) -> None:
+    @property
+    def scene(self):
+        """The Mitsuba scene, its vertices up to date (a lazy :meth:`set_vertices` is applied first)."""
+        self.commit()
+        return self._scene
+
+    def set_vertices(self, vertices: np.ndarray, update: bool = True, lazy: bool = False) -> None:
+        """Move the mesh to ``vertices`` (V, 3). ``lazy``: the Mitsuba scene (whose acceleration structure
+        Mitsuba rebuilds on every update) is updated only when next used (:attr:`scene`, :meth:`trace`,
+        :meth:`occluded`); :meth:`camera_hits` rasterises without it."""
         v = np.asarray(vertices, np.float64)
         if v.shape != (self.mesh.vertex_count(), 3):
             raise ValueError(f"expected ({self.mesh.vertex_count()}, 3) vertices, got {v.shape}")
@@ -66,12 +76,44 @@ class MeshScene:
             bad = np.flatnonzero(~np.isfinite(v).all(1))
             raise ValueError(f"{len(bad)} vertex position(s) are NaN/Inf (first: vertex {bad[0]})")
         self.vertices = v
+        self._pending = bool(update and lazy)
+        if self._pending:
+            return
         flat = self._dr.ravel(to_jit(self._mi.Point3f, v.T))
         if update:
             self._scene_params["mesh.vertex_positions"] = flat
             self._scene_params.update()
         else:
             self._params["vertex_positions"] = flat
+
+    def commit(self) -> None:
+        """Apply a lazy :meth:`set_vertices` to the Mitsuba scene (nothing when none is pending)."""
+        if self._pending:
+            self.set_vertices(self.vertices)
+
+    def camera_hits(self, camera: Camera, samples, directions: np.ndarray) -> Hits:
+        """The culled hits of a camera's samples (as :meth:`trace` from the camera's centre with
+        ``cull_back``): rasterised (:func:`.raster.camera_hits`, no acceleration structure) where Numba is
+        there, ray-cast otherwise or where a triangle reaches behind the camera. ``samples`` the samples'
+        :class:`.raster.SampleGrid`, ``directions`` (N, 3) their unit rays in the world (the ray cast's)."""
+        from . import raster
+
+        if samples is not None and raster.available():
+            found = raster.camera_hits(self._raster_vertices(), self._raster_faces(), camera.centre, camera.R,
+                                       samples, cull_back=True, tessellation=self._tessellation())
+            if found is not None:
+                tri, sub, bary, t = found
+                return Hits(tri >= 0, tri, bary, t, sub=None if self._tessellation() is None else sub)
+        return self.trace(camera.centre, directions, cull_back=True)
+
+    def _raster_vertices(self) -> np.ndarray:
+        return self.vertices
+
+    def _raster_faces(self) -> np.ndarray:
+        return self.faces
+
+    def _tessellation(self):
+        return None
 
     def face_normals(self) -> np.ndarray:
         """(F, 3) unit normals of the triangles (right-hand rule on ``faces`` order)."""
@@ -235,12 +277,12 @@ class CurvedMeshScene(MeshScene):
         self.tessellation = PhongTessellation(faces, len(vertices), level, only=only)
         self._curved = MeshScene(self.tessellation.positions(vertices), self.tessellation.faces)
         self._mi, self._dr = self._curved._mi, self._curved._dr
-        self.mesh, self.scene = self._curved.mesh, self._curved.scene
+        self.mesh = self._curved.mesh
         self.faces = faces
         self.vertices = vertices
         self._maps = None
 
-    def set_vertices(self, vertices: np.ndarray, update: bool = True) -> None:
+    def set_vertices(self, vertices: np.ndarray, update: bool = True, lazy: bool = False) -> None:
         v = np.asarray(vertices, np.float64)
         if v.shape != (self.tessellation.n_vertices, 3):
             raise ValueError(f"expected ({self.tessellation.n_vertices}, 3) vertices, got {v.shape}")
@@ -248,7 +290,23 @@ class CurvedMeshScene(MeshScene):
             bad = np.flatnonzero(~np.isfinite(v).all(1))
             raise ValueError(f"{len(bad)} vertex position(s) are NaN/Inf (first: vertex {bad[0]})")
         self.vertices = v
-        self._curved.set_vertices(self.tessellation.positions(v), update)
+        self._curved.set_vertices(self.tessellation.positions(v), update, lazy)
+
+    @property
+    def scene(self):
+        return self._curved.scene
+
+    def commit(self) -> None:
+        self._curved.commit()
+
+    def _raster_vertices(self) -> np.ndarray:
+        return self._curved.vertices
+
+    def _raster_faces(self) -> np.ndarray:
+        return self.tessellation.faces
+
+    def _tessellation(self):
+        return self.tessellation
 
     def _trace_once(self, o: np.ndarray, d: np.ndarray) -> Hits:
         # the sub-face → coarse-face map applied on the device, in the ray cast's kernel (in NumPy it took

@@ -234,7 +234,9 @@ class CombinedScene:
         # ``curved`` > 1: the skin traced as its Phong surface (the parts flat), hits reported on the coarse mesh
         self.scene = MeshScene(V, F) if curved == 1 else CurvedMeshScene(V, F, curved, only=self.label == 0)
 
-    def set_pose(self, skin_vertices, transforms: dict) -> np.ndarray:
+    def set_pose(self, skin_vertices, transforms: dict, lazy: bool = False) -> np.ndarray:
+        """Pose the skin (its vertices) and the parts (``transforms`` {part: 4x4 rest → world}); ``lazy``:
+        the Mitsuba scene is updated when next used (:meth:`.meshscene.MeshScene.set_vertices`)."""
         v = self.scene.vertices.copy()
         v[: self.n_skin] = skin_vertices
         for p in self.names:
@@ -242,7 +244,7 @@ class CombinedScene:
             T = transforms.get(p)
             # a part missing in this pose is moved far away (it cannot be seen or cast shadows)
             v[o:o + n] = apply(T, self.rest[p]) if T is not None else self.rest[p] + 1e3
-        self.scene.set_vertices(v)
+        self.scene.set_vertices(v, lazy=lazy)
         return v
 
 

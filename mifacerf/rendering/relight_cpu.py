@@ -67,23 +67,11 @@ def _kernels():
 #: small chunks evenly)
 WORK_ROWS = 2048
 
-_POOL = None
-
-
 def threads() -> int:
-    """Threads that light a frame's chunks: Dr.Jit's thread count (the cores it was given)."""
-    import drjit as dr
+    """Threads that light a frame's chunks: Dr.Jit's thread count (:func:`mifacerf.hostpool.threads`)."""
+    from ..hostpool import threads as host_threads
 
-    return max(1, int(dr.thread_count()))
-
-
-def _pool():
-    global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL = ThreadPoolExecutor(max_workers=threads(), thread_name_prefix="mifacerf-relight")
-    return _POOL
+    return host_threads()
 
 
 def check_map(bary, fv, lin, cov, n_vertices: int, pixels: int) -> tuple:
@@ -152,11 +140,8 @@ def lit_images(fields: list, lights: list, chunk_light, weights: np.ndarray, map
         for i, (c, a, b) in todo:          # next() under the GIL: each item taken once
             counts[i] = run(*args[c], a, b)
 
-    n = min(threads(), len(items))
-    if n <= 1:
-        work()
-    else:
-        for fut in [_pool().submit(work) for _ in range(n)]:
-            fut.result()
+    from ..hostpool import run_all
+
+    run_all([work] * min(threads(), len(items)))
     lit = np.bincount([c for c, _, _ in items], weights=counts, minlength=len(args)).astype(np.int64)
     return images, lit

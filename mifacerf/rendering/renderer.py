@@ -462,14 +462,17 @@ class Renderer:
 
         t0 = time.perf_counter()
         use_parts = bool(parts) and self._combined is not None
+        # lazy: rasterised hits need no acceleration structure; Mitsuba's scene (whose BVH it rebuilds on
+        # every update) is updated only if rays are cast into it (the parts' shadow rays, a fall-back)
         if use_parts:
-            self._combined.set_pose(traced, parts)
+            self._combined.set_pose(traced, parts, lazy=True)
             scene = self._combined.scene
         else:
-            self._scene.set_vertices(traced)
+            self._scene.set_vertices(traced, lazy=True)
             scene = self._scene
         uv, origin, dirs = self._camera_rays(camera, spp, seed)
-        hits = scene.trace(origin, dirs, cull_back=True)   # as MeshScene.render_hits, the rays kept
+        # as MeshScene.render_hits (culled), the rays kept: rasterised (geometry.raster) or ray-cast
+        hits = scene.camera_hits(camera, self._sample_grid(camera, spp, seed), dirs)
         if use_parts:
             self._parts_inside_skin(hits, uv, camera, dirs)
         idx = np.flatnonzero(hits.valid)
@@ -553,7 +556,7 @@ class Renderer:
         from ..geometry.vectors import row_norms
 
         cache = self.method_cache.setdefault("rays", {})
-        intrinsics = (camera.width, camera.height, spp, seed, camera.K.tobytes(), np.asarray(camera.dist).tobytes())
+        intrinsics = _intrinsics(camera, spp, seed)
         if intrinsics not in cache:
             if spp == 1:
                 jj, ii = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
@@ -572,6 +575,23 @@ class Renderer:
             posed.clear()
             posed[pose] = d
         return uv, camera.centre, posed[pose]
+
+    def _sample_grid(self, camera: Camera, spp: int, seed: int):
+        """The camera's samples on its undistorted image plane, binned for :func:`.raster.camera_hits`
+        (:class:`.raster.SampleGrid`), made once per intrinsics beside :meth:`_camera_rays`' plane; None
+        where the rasteriser is not available (the hits are then ray-cast)."""
+        from ..geometry import raster
+
+        if not raster.available():
+            return None
+        key = _intrinsics(camera, spp, seed)
+        grids = self.method_cache.setdefault("grids", {})
+        if key not in grids:
+            if len(grids) >= 4:
+                grids.pop(next(iter(grids)))
+            self._camera_rays(camera, spp, seed)
+            grids[key] = raster.SampleGrid(self.method_cache["rays"][key][1][:, :2], camera.width, camera.height)
+        return grids[key]
 
     def _parts_inside_skin(self, hits, uv: np.ndarray, camera: Camera,
                            directions: np.ndarray | None = None) -> None:
@@ -633,6 +653,11 @@ def _lit_images(chunks: list[dict], lit_texels: list[tuple]):
         dr.eval(images, depths)
         off += size
     return images, depths
+
+
+def _intrinsics(camera: Camera, spp: int, seed: int) -> tuple:
+    """What a camera's sample plane depends on (:meth:`Renderer._camera_rays`): size, samples, intrinsics."""
+    return (camera.width, camera.height, spp, seed, camera.K.tobytes(), np.asarray(camera.dist).tobytes())
 
 
 def _frame_key(target, weights, camera, env, spp, seed, parts) -> str:
