@@ -14,7 +14,7 @@ Dr.Jit's, so the two agree to float32 rounding (images 150 dB apart), not bit fo
 
 :func:`lit_images` also takes over the chunk loop's texel selection in NumPy (the texels whose
 weight Σ b a is positive, their ĉ): the kernel tests each texel of the field itself. A frame's chunks are
-cut into work items of :data:`WORK_ROWS` rows and lit by :func:`threads` Python threads, each calling the
+cut into work items of :data:`WORK_ROWS` rows (more where rows are short) and lit by :func:`threads` Python threads, each calling the
 serial kernel without the GIL (one parallel Numba launch per chunk cost more than the light sum of a
 small chunk; 113 chunks a drive frame). The images are made on the host and handed to Dr.Jit once.
 
@@ -64,8 +64,11 @@ def _kernels():
 
 
 #: rows of a field per work item of :func:`lit_images` (so that the threads share a frame's large and
-#: small chunks evenly)
+#: small chunks evenly), for rows of :data:`WORK_VALUES` / WORK_ROWS halves (the exact path's 192 lights × 3);
+#: shorter rows (``sh``, ``pca``: 27–75 values) make proportionally longer items, so that each item's Python
+#: dispatch (~20 µs) stays small beside its work
 WORK_ROWS = 2048
+WORK_VALUES = WORK_ROWS * 576
 
 def threads() -> int:
     """Threads that light a frame's chunks: Dr.Jit's thread count (:func:`mifacerf.hostpool.threads`)."""
@@ -131,7 +134,8 @@ def lit_images(fields: list, lights: list, chunk_light, weights: np.ndarray, map
             raise ValueError(f"chunk {c}: lighting of {light.shape[1]} values a vertex for a field of "
                              f"{f.shape[1]} a row and {len(ids)} lights kept")
         args.append((f, light, ids, bary, fv, lin, cov, W[c], images, int(offsets[c])))
-        items += [(c, a, min(a + WORK_ROWS, rows)) for a in range(0, rows, WORK_ROWS)]
+        step = max(WORK_ROWS, WORK_VALUES // max(f.shape[1], 1))
+        items += [(c, a, min(a + step, rows)) for a in range(0, rows, step)]
     counts = np.zeros(len(items), np.int64)
     todo = iter(enumerate(items))
     run = kern["rows"]
