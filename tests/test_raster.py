@@ -105,3 +105,29 @@ def test_switched_off_and_bad_planes(monkeypatch):
         raster.SampleGrid(np.zeros((4, 3)), 2, 2)
     with pytest.raises(ValueError, match="NaN"):
         raster.SampleGrid(np.array([[0.0, np.nan]]), 2, 2)
+
+
+def test_an_unchanged_mesh_is_not_rebuilt(mi):
+    """Mitsuba rebuilds the BVH on every update: an update with the vertices its scene already holds is
+    skipped (counted on the scene's parameter updates), a changed one is not, and rays see the change."""
+    from mifacerf.geometry.meshscene import MeshScene
+
+    V, F = _scene_mesh()
+    scene = MeshScene(V, F)
+    before = scene.trace(np.array([0.0, 0.0, 1.0]), np.array([[0.0, 0.0, -1.0]]))
+    calls = []
+    params = scene._scene_params
+    real = params.update
+    params.update = lambda *a, **k: (calls.append(1), real(*a, **k))[1]
+    scene.set_vertices(V.copy())
+    scene.set_vertices(V.copy(), lazy=True)
+    scene.commit()
+    assert calls == []
+    moved = V + [0.0, 0.0, 0.05]
+    scene.set_vertices(moved)
+    assert calls == [1]
+    hit = scene.trace(np.array([0.0, 0.0, 1.0]), np.array([[0.0, 0.0, -1.0]]))
+    assert hit.valid[0] and np.isclose(hit.t[0], before.t[0] - 0.05, atol=1e-5)
+    scene.set_vertices(moved, lazy=True)           # pending but unchanged: nothing to rebuild either
+    scene.trace(np.array([0.0, 0.0, 1.0]), np.array([[0.0, 0.0, -1.0]]))
+    assert calls == [1]

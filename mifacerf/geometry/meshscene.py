@@ -52,6 +52,7 @@ class MeshScene:
         self._params = mi.traverse(self.mesh)
         self._params["faces"] = dr.ravel(mi.Vector3u(np.ascontiguousarray(self.faces.T, dtype=np.uint32)))
         self._pending = False
+        self._in_scene = None         # the vertices Mitsuba's scene holds (an unchanged update is skipped)
         self.set_vertices(vertices, update=False)
         self._params.update()
         # not in parallel: a plugin (facerf, facerf_bsdf) builds these while Mitsuba loads its scene on the
@@ -79,7 +80,10 @@ class MeshScene:
         self._pending = bool(update and lazy)
         if self._pending:
             return
+        if update and self._in_scene is not None and np.array_equal(v, self._in_scene):
+            return      # unchanged (a turntable, a relit or re-viewed expression): no rebuild of the BVH
         flat = self._dr.ravel(to_jit(self._mi.Point3f, v.T))
+        self._in_scene = v.copy()
         if update:
             self._scene_params["mesh.vertex_positions"] = flat
             self._scene_params.update()
