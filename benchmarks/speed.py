@@ -245,7 +245,37 @@ def skips(face, n_frames, size, env, seed):
         tp.append(time.perf_counter() - t0)
     out.append({"skip": "eyes/teeth pass (run only when a sample hits a part): with it vs a skin-only frame", "without_s": float(np.median(tp)),
                 "with_s": float(np.median(ts)), "psnr_db": None})
+    out.append(unchanged_geometry(face, frames[1]["expression"], size, env))
     return out
+
+
+def unchanged_geometry(face, expression, size, env, yaws=(-20, -10, 0, 10, 20), rounds=3):
+    """A turntable of one expression (the same target from ``yaws``): Mitsuba's scene update, which rebuilds
+    the BVH, skipped while the vertices are unchanged (``MeshScene.set_vertices``) against forced, alternating."""
+    from mifacerf.geometry import meshscene
+    from mifacerf.rendering.renderer import Renderer
+
+    r = Renderer(face.model)
+    r.cache_frames = False
+    frames = [{"expression": expression, "yaw": y, "pitch": 0.0} for y in yaws]
+    for fr in frames:
+        render(face, r, fr, size, env)
+    scenes = [r._scene] + ([r._combined.scene] if r._combined is not None else [])
+    t = {True: [], False: []}
+    p = []
+    for _ in range(rounds):
+        for fr in frames:
+            imgs = {}
+            for skip in (True, False):
+                if not skip:           # forget what the scenes hold: the next update rebuilds
+                    for sc in scenes:
+                        getattr(sc, "_curved", sc)._in_scene = None
+                t0 = time.perf_counter()
+                imgs[skip] = render(face, r, fr, size, env)
+                t[skip].append(time.perf_counter() - t0)
+            p.append(psnr(imgs[True], imgs[False]))
+    return {"skip": "unchanged geometry (a turntable of one expression: no BVH rebuild)",
+            "without_s": float(np.median(t[False])), "with_s": float(np.median(t[True])), "psnr_db": float(np.median(p))}
 
 
 def cold(model, size, env):
