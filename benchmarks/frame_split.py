@@ -1,6 +1,6 @@
 """Where a warm frame's time goes, with the device synchronised after each step::
 
-    python benchmarks/frame_split.py MODEL [--frames 5] [--size 256] [--seed 7]
+    python benchmarks/frame_split.py MODEL [--frames 5] [--size 256] [--seed 7] [--config exact]
 
 Dr.Jit's LLVM kernels run asynchronously: a stage of ``RenderStats.times`` that launches kernels ends
 before they do, and the next stage that reads a result back waits for them. So the renderer's own stage
@@ -37,6 +37,9 @@ STEPS = (
     ("mifacerf.rendering.frame", "LitFrame", "shade", "skin shading"),
     ("mifacerf.rendering.parts", "CombinedScene", "set_pose", "scene update (parts posed)"),
     ("mifacerf.rendering.parts", "PartFrame", "shade", "eyes/teeth shading"),
+    ("mifacerf.geometry.meshscene", "MeshScene", "camera_hits", "primary hits (raster or ray cast)"),
+    ("mifacerf.geometry.meshscene", "MeshScene", "commit", "Mitsuba scene update (BVH rebuild; parts hit)"),
+    ("mifacerf.geometry.meshscene", "CurvedMeshScene", "commit", "Mitsuba scene update (BVH rebuild; parts hit)"),
     ("mifacerf.geometry.meshscene", "MeshScene", "trace", "ray casts"),
     ("mifacerf.geometry.meshscene", "MeshScene", "set_vertices", "scene update (vertices)"),
 )
@@ -50,6 +53,7 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--config", default="exact", help="a speed.py configuration: exact, sh3, pca8, exact/dr, ...")
     a = ap.parse_args(argv)
     import drjit as dr
 
@@ -83,7 +87,7 @@ def main(argv=None) -> None:
         wrap(getattr(m, cls) if cls else m, attr, label)
     face = mf.load_model(a.model)
     env = face.environment("sky")
-    r = speed.renderer_for(face, "exact")
+    r = speed.renderer_for(face, a.config)
     wrap(type(face), "target", "target mesh and weights (Face.target)")
     wrap(type(face), "parts", "part poses (Face.parts)")
     frames = speed.draw_frames(face, a.frames, a.seed)
@@ -101,7 +105,7 @@ def main(argv=None) -> None:
             dr.sync_thread()
             ts.append(time.perf_counter() - t)
         out[synced] = (float(np.median(ts)), {k: v / len(frames) for k, v in times.items()}, float(np.mean(ts)))
-    print(f"{a.size}² warm frame, median of {a.frames}: {out[False][0]:.3f} s as rendered, "
+    print(f"{a.config}, {a.size}² warm frame, median of {a.frames}: {out[False][0]:.3f} s as rendered, "
           f"{out[True][0]:.3f} s synchronised step by step; load {os.getloadavg()[0]:.1f}")
     total = out[True][2]     # the table's shares: of the mean synchronised frame (the steps are means)
     steps = sorted(out[True][1].items(), key=lambda kv: -kv[1])

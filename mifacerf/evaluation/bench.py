@@ -372,14 +372,17 @@ def plot(report: dict, path: Path) -> None:
 
 
 def compression_knob(model, synth_out, out, configs=("exact", "sh2", "sh3", "sh4", "sh6", "sh8"), n_frames: int = 3,
-                     size: int = 256, env: str = "sky", spp: int = 4, spp_truth: int = 64, seed: int = 7) -> dict:
+                     size: int = 256, env: str = "sky", spp: int = 4, spp_truth: int = 64, seed: int = 7,
+                     warm: bool = False) -> dict:
     """The compression knob (rank / order) against size, time and error, side by side in this process.
 
     Every configuration (``exact`` or ``<method><rank>`` of a compressed copy the model holds) renders each of
     ``n_frames`` bench frames (:func:`frames`) after a warm-up frame, one after another, so a loaded machine slows
     them alike. Per configuration: data on disk, median seconds per frame and of the relight stage, PSNR on
     the face mask against the path-traced truth and against the exact path. Writes ``knob.json`` and
-    ``knob.png`` (three panels over the knob: size, time, error) to ``out``; returns the report.
+    ``knob.png`` (three panels over the knob: size, time, error) to ``out``; returns the report. ``warm``:
+    every frame is rendered once by every configuration before the timed pass (fields loaded, lighting
+    cached: the times are then the render's, not the disk's).
     """
     from ..rendering.api import load_model
     from ..rendering.renderer import Renderer, RenderStats
@@ -399,6 +402,12 @@ def compression_knob(model, synth_out, out, configs=("exact", "sh2", "sh3", "sh4
         renderers[c] = Renderer(face.model) if comp is None else Renderer(face.model, method=comp[0], rank=comp[1])
         renderers[c].cache_frames = False
     rows = {c: {"seconds": [], "relight": [], "psnr_truth": [], "psnr_exact": []} for c in configs}
+    if warm:
+        for f in fr:
+            cam = face.camera((f["yaw"], f["pitch"]), size=size)
+            target, W = face.target(f["expression"])
+            for c in configs:
+                renderers[c].render(target, W, cam, envo, spp=spp, parts=face.parts(f["expression"]))
     for i, f in enumerate(fr):
         cam = face.camera((f["yaw"], f["pitch"]), size=size)
         target, W = face.target(f["expression"])
@@ -421,6 +430,7 @@ def compression_knob(model, synth_out, out, configs=("exact", "sh2", "sh3", "sh4
             rows[c]["psnr_truth"].append(psnr(img, t, m))
             rows[c]["psnr_exact"].append(psnr(img, ref, m & (ref[..., 3] > 0.999)))
     report = {"model": str(model), "size": size, "spp": spp, "spp_truth": spp_truth, "env": env, "frames": fr[1:],
+              "warm": bool(warm),
               "load": os.getloadavg(), "reference": configs[0], "rows": []}
     for c in configs:
         r = rows[c]
@@ -468,7 +478,8 @@ def plot_knob(report: dict, path: Path) -> None:
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
     axes[0].set_yscale("log")
-    fig.suptitle(f"compression knob: {report['size']}² frames, {len(report['frames'])} frames, "
+    fig.suptitle(f"compression knob: {report['size']}² frames, {len(report['frames'])} "
+                 f"{'warm ' if report.get('warm') else ''}frames, "
                  f"load {report['load'][0]:.1f} (dotted: the issue's targets)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path)

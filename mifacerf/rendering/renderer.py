@@ -473,7 +473,8 @@ class Renderer:
         uv, origin, dirs = self._camera_rays(camera, spp, seed)
         # as MeshScene.render_hits (culled), the rays kept: rasterised (geometry.raster) or ray-cast
         hits = scene.camera_hits(camera, self._sample_grid(camera, spp, seed), dirs)
-        if use_parts:
+        if use_parts and (hits.tri[hits.valid] >= len(model.triangles)).any():
+            self._combined.scene.commit()   # rays go into the posed scene now: Mitsuba rebuilds its BVH here
             self._parts_inside_skin(hits, uv, camera, dirs)
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
