@@ -97,12 +97,13 @@ class MeshScene:
 
     def camera_hits(self, camera: Camera, samples, directions: np.ndarray) -> Hits:
         """The culled hits of a camera's samples (as :meth:`trace` from the camera's centre with
-        ``cull_back``): rasterised (:func:`.raster.camera_hits`, no acceleration structure) where Numba is
-        there, ray-cast otherwise or where a triangle reaches behind the camera. ``samples`` the samples'
-        :class:`.raster.SampleGrid`, ``directions`` (N, 3) their unit rays in the world (the ray cast's)."""
+        ``cull_back``): rasterised (:func:`.raster.camera_hits`, no acceleration structure) on the CPU
+        variants where Numba is there, ray-cast otherwise (the CUDA variants: OptiX on the device) or where a
+        triangle reaches behind the camera. ``samples`` the samples' :class:`.raster.SampleGrid`,
+        ``directions`` (N, 3) their unit rays in the world (the ray cast's)."""
         from . import raster
 
-        if samples is not None and raster.available():
+        if samples is not None and raster.available() and self._mi.variant().startswith("llvm"):
             found = raster.camera_hits(self._raster_vertices(), self._raster_faces(), camera.centre, camera.R,
                                        samples, cull_back=True, tessellation=self._tessellation())
             if found is not None:

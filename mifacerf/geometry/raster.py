@@ -16,7 +16,8 @@ Why (docs/rendering.md, "Seventh pass"): the renderer moves its mesh every frame
 rebuild the whole acceleration structure on each update (no refit can be asked for from Python): 25–30 ms
 of a 256² frame for the 17.6k triangles of the demo model's traced head, beside 20 ms of ray casts. This
 needs no acceleration structure; the Mitsuba scene is then updated only when something else casts
-rays into it (the eyes' and teeth's shadow rays).
+rays into it (the eyes' and teeth's shadow rays). Used on the CPU variants (``llvm_*``); the CUDA variants
+ray-cast on the device. ``MIFACERF_NUMBA_RASTER=0`` ray-casts everywhere.
 
 Units: camera coordinates in metres (x right, y down, z forward: :class:`mifacerf.camera.Camera`).
 """
