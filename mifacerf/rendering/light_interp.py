@@ -148,6 +148,15 @@ class LightInterpolator:
         self._dirs_dev = to_jit(mi.Float, self.directions.reshape(-1))
         return self
 
+    def direction_jit(self, ids, active=True):
+        """Dr.Jit: the directions (Vector3f) of the lights ``ids`` (UInt32)."""
+        import drjit as dr
+
+        mi = ensure_variant()
+        if not hasattr(self, "_dirs_dev"):
+            self.to_device()
+        return mi.Vector3f(*[dr.gather(mi.Float, self._dirs_dev, ids * 3 + j, active) for j in range(3)])
+
     def weights_jit(self, d, active=True):
         """Dr.Jit version: Vector3f world directions → ([UInt32]*3 light ids, [Float]*3 weights)."""
         import drjit as dr

@@ -205,6 +205,12 @@ def skin_in_front_of_parts(scene, ray, si, face_shape, part_shapes, active=True)
     return on_face, tri, p
 
 
+#: metres a part's shadow and reflection rays start out along its normal (the eye sphere's, a tooth's or
+#: the mouth's face normal): clear of the part's own facets and of skin that lies as close (the exact path's
+#: rule, :meth:`PartFrame.shade`; ``facerf_direct`` applies it to the material's part hits too)
+PART_RAY_OFFSET = 2e-4
+
+
 class CombinedScene:
     """The target's skin template plus its eyes and teeth in one Mitsuba scene, with a part id per triangle
     (0 = skin, 1.. = PARTS index + 1); ``curved`` > 1 traces the skin as its Phong surface
@@ -333,7 +339,7 @@ class PartFrame:
                 taps.append((UInt32(dr.select(ok, row, 0)) * L3, w, ok))
                 wsum += w
         inv = dr.select(wsum > 0, dr.rcp(wsum), 0.0)
-        origin = p + n * 2e-4
+        origin = p + n * PART_RAY_OFFSET
         n_lights = dr.opaque(UInt32, L)
 
         def body(i, r, g, b):

@@ -117,3 +117,67 @@ def test_evaluation_report(built_root, tmp_path):
     assert report["truth_noise_psnr"] == min(c["truth_noise_psnr"] for c in report["cases"])
     assert set(report["summary"]) == {"a", "b", "c", "d"}
     assert (tmp_path / "cases.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_facerf_direct_starts_part_rays_as_the_exact_path(built_root):
+    """facerf_direct's shadow rays from an eye start PART_RAY_OFFSET out along the eye's sphere normal (the
+    exact path's rule, PartFrame.shade), snapped towards an environment to the stage light the material
+    answers with (the exact path's one ray per light); from the skin as Mitsuba's; ``part_rays`` false:
+    Mitsuba's everywhere, and the skin's pixels are the same either way."""
+    import drjit as dr
+
+    from mifacerf.camera import Camera
+    from mifacerf.evaluation import material as M
+    from mifacerf.environment import cache_dir, generated
+    from mifacerf.plugins import facerf_direct as FD
+    from mifacerf.rendering.parts import PART_RAY_OFFSET
+    from mifacerf.variant import ensure_plugins
+
+    mi = ensure_plugins()
+    generated("sky")
+    emitter = {"type": "envmap", "filename": str(cache_dir() / "environments" / "sky-128.exr")}
+    size = 64
+    cam = Camera.look_at("eval", [0.02, 0.03, 0.45], [0, 0.03, 0], width=size, height=size, focal=size * 4.0)
+    model = built_root / "model"
+    scene = M._scene(mi, model, {"type": "facerf_direct"}, emitter, cam, 4, None)
+    label, face = M._labels(mi, scene, size)
+    eye = np.argwhere(label == 1)                                   # eye_left
+    assert len(eye) > 3
+    i, j = eye[len(eye) // 2]
+    uv = mi.Point2f(mi.Float([(j + 0.5) / size, 0.5]), mi.Float([(i + 0.5) / size, 0.5]))
+    ray, _ = scene.sensors()[0].sample_ray(0.0, 0.5, uv, mi.Point2f(0.5, 0.5))
+    si = scene.ray_intersect(ray)
+    ds, _ = scene.sample_emitter_direction(si, mi.Point2f(0.3, 0.6), False)
+    parts = FD._part_faces(scene)
+    assert len(parts) == 1
+    r = FD.part_ray(si, ds, parts)
+    bsdf = parts[0][2]
+    centre = np.array([np.asarray(bsdf.parts.eye_centre)[k] for k in range(3)])   # eye_left: PARTS index 0
+    p = np.array([np.asarray(si.p.x)[0], np.asarray(si.p.y)[0], np.asarray(si.p.z)[0]])
+    o = np.array([np.asarray(r.o.x)[0], np.asarray(r.o.y)[0], np.asarray(r.o.z)[0]])
+    n = (p - centre) / np.linalg.norm(p - centre)
+    np.testing.assert_allclose(o, p + PART_RAY_OFFSET * n, atol=2e-6)
+    np.testing.assert_allclose([np.asarray(r.d.x)[0], np.asarray(r.d.y)[0], np.asarray(r.d.z)[0]],
+                               [np.asarray(ds.d.x)[0], np.asarray(ds.d.y)[0], np.asarray(ds.d.z)[0]], atol=1e-6)
+    # snapped (towards the environment): along the stage light nearest to ds.d in the eye's reference frame,
+    # the light stage turned back into the target (NumPy, from the material's own transform table)
+    snapped = FD.part_ray(si, ds, parts, snap=True)
+    A = np.asarray(bsdf.parts.table)[:12].reshape(3, 4)[:, :3]      # eye_left's row: target → reference
+    d = np.array([np.asarray(ds.d.x)[0], np.asarray(ds.d.y)[0], np.asarray(ds.d.z)[0]])
+    import mifacerf as mf
+
+    dirs = mf.load_model(model).model.light_directions
+    want = A.T @ dirs[np.argmax(dirs @ (A @ d))]
+    got = np.array([np.asarray(snapped.d.x)[0], np.asarray(snapped.d.y)[0], np.asarray(snapped.d.z)[0]])
+    np.testing.assert_allclose(got, want / np.linalg.norm(want), atol=1e-5)
+    assert np.linalg.norm(got - d) > 1e-4                           # not the sampled direction itself
+    np.testing.assert_allclose([np.asarray(snapped.o.x)[0]], [o[0]], atol=1e-7)
+    spawned = si.spawn_ray_to(ds.p)                                 # the second ray (background): Mitsuba's own
+    assert np.asarray(r.o.x)[1] == np.asarray(spawned.o.x)[1]
+    on = np.asarray(mi.render(scene, seed=3))
+    off = np.asarray(mi.render(M._scene(mi, model, {"type": "facerf_direct", "part_rays": False}, emitter, cam, 4,
+                                        None), seed=3))
+    skin = label == 0
+    np.testing.assert_array_equal(on[skin], off[skin])
+    assert dr.width(si.p) == 2
