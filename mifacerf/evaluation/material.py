@@ -564,8 +564,9 @@ def regions(model, env: str = "interior", size: int = 96, spp: int = 64, integra
     exact_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, None)
     ref, mask, _ = _reference(mi, exact_scene)
     label, _ = _labels(mi, exact_scene, size)
+    integrator, options = _integrator_options(integrator)
     name = _register_unshadowed(mi) if integrator == "unshadowed" else integrator
-    spec = {"type": name} if name != "path" else {"type": "path", "max_depth": 3}
+    spec = {"type": name, **options} if name != "path" else {"type": "path", "max_depth": 3, **options}
     passes, seconds = _passes(mi, _scene(mi, model, spec, emitter, camera, spp, None, bsdf), spp)
     mean = passes.mean(0)
     if integrator == "unshadowed":   # no background on this integrator: the face only
@@ -592,6 +593,26 @@ def regions(model, env: str = "interior", size: int = 96, spp: int = 64, integra
             "worst_1pc": round(float(worst[max(int(0.01 * n) - 1, 0)]), 3),
             "worst_5pc": round(float(worst[max(int(0.05 * n) - 1, 0)]), 3), "rows": rows,
             "seconds": round(seconds, 1), "spp": f"2 x {spp}"}
+
+
+def _integrator_options(integrator: str) -> tuple[str, dict]:
+    """``NAME[:key=value,...]`` → (NAME, {key: value}); values true/false, numbers or strings
+    (``facerf_direct:part_rays=false``)."""
+    name, _, opts = integrator.partition(":")
+    out = {}
+    for item in filter(None, opts.split(",")):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"integrator option {item!r}: expected key=value (e.g. {name}:part_rays=false)")
+        low = value.lower()
+        if low in ("true", "false"):
+            out[key] = low == "true"
+        else:
+            try:
+                out[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+            except ValueError:
+                out[key] = value
+    return name, out
 
 
 def format_rows(rows: list[dict]) -> str:
@@ -634,7 +655,8 @@ def main(argv=None) -> None:
                     "facerf integrator instead, per part (parts)")
     ap.add_argument("--regions", action="store_true", help="where the error lies instead: per pixel class "
                     "(skin, parts, outline band, facet-blocked skin) at --size (regions); --integrators "
-                    "unshadowed: the material without shadow rays")
+                    "unshadowed: the material without shadow rays; NAME:key=value,... passes options to the "
+                    "integrator (facerf_direct:part_rays=false)")
     ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
     bsdf = {"self_visibility": False} if a.no_self_visibility else {}
