@@ -59,6 +59,27 @@ class FaceModel:
         self.renderer = Renderer(self.model)
         self._envs: dict[str, Environment] = {}
 
+    def use_method(self, method: str = "exact", rank: int | None = None) -> "FaceModel":
+        """Light this model's fields by ``method`` (a :data:`.compression.COMPRESSION_METHODS` name) at
+        ``rank`` from now on (a new :attr:`renderer`); returns self. A compressed method needs the copy
+        ``mifacerf compress`` writes: a ValueError names the command when the model does not list it."""
+        from .compression import compression_method
+
+        m = compression_method(method)
+        if m.compress is None:
+            if rank is not None:
+                raise ValueError(f"the {method!r} method takes no rank (got --rank {rank})")
+            self.renderer = Renderer(self.model)
+            return self
+        have = sorted(self.model.meta.get("compressed", {}).get(method, []))
+        if rank is None or int(rank) not in have:
+            wanted = "a rank" if rank is None else f"rank {rank}"
+            listed = f"it holds {method} ranks {', '.join(map(str, have))}" if have else f"it holds no {method} copy"
+            raise ValueError(f"{self.model.root}: {wanted} of the {method!r} method is needed and {listed} "
+                             f"(mifacerf compress {self.model.root} --method {method} --rank {rank or 'K'})")
+        self.renderer = Renderer(self.model, method=method, rank=int(rank))
+        return self
+
     @property
     def expressions(self) -> list[str]:
         return list(self.model.expressions)

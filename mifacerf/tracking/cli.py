@@ -61,6 +61,10 @@ DRIVE_OPTIONS = (
     click.option("--no-exr", is_flag=True, help="Write the PNG frames and the video only."),
     click.option("--weight-smoothing", type=click.FloatRange(min=0), default=2.0, show_default=True,
                  help="Temporal filter of the §5 weights (Gaussian sigma in frames; 0 = off)."),
+    click.option("--method", default="exact", show_default=True,
+                 help="How the fields are lit: exact, or a compressed copy the model holds (sh, pca: with --rank)."),
+    click.option("--rank", type=click.IntRange(min=1), default=None,
+                 help="The compressed copy's rank / order (mifacerf compress --rank)."),
 )
 
 
@@ -71,7 +75,8 @@ def drive_options(command):
     return command
 
 
-def run_drive(drive, track, model, out, envs, camera, size, spp, frames, no_exr, weight_smoothing) -> Path:
+def run_drive(drive, track, model, out, envs, camera, size, spp, frames, no_exr, weight_smoothing, method="exact",
+              rank=None) -> Path:
     """Parse :data:`DRIVE_OPTIONS` and call ``drive(track, model, out, **keywords)`` (:func:`.drive.drive` or
     one with the same keywords); errors become click errors, the result is echoed."""
     from ..formats.model import ModelError
@@ -87,7 +92,7 @@ def run_drive(drive, track, model, out, envs, camera, size, spp, frames, no_exr,
         cam = tuple(float(x) for x in camera.split(","))
     try:
         path = drive(track, model, out, envs=envs, camera=cam, size=size, spp=spp, frames=frames, exr=not no_exr,
-                     weight_sigma=weight_smoothing, log=click.echo)
+                     weight_sigma=weight_smoothing, log=click.echo, method=method, rank=rank)
     except (TrackError, ModelError, ValueError, KeyError, OSError) as exc:
         raise click.ClickException(str(exc)) from exc
     click.echo(f"driven performance written to {path} (videos: {', '.join(str(p) for p in sorted(Path(path).glob('*/performance.mp4')))})")

@@ -90,6 +90,7 @@ class FrameContext:
     def __init__(self, face, env, camera, spp: int):
         self._face, self.root, self.env, self.camera, self.spp = face, str(face.model.root), env, camera, spp
         self.cache_bytes = getattr(face.model, "cache_bytes", 4 << 30)
+        self.method = (face.renderer.method, face.renderer.rank if face.renderer.method != "exact" else None)
 
     def __getstate__(self):
         return {**self.__dict__, "_face": None}
@@ -99,8 +100,8 @@ class FrameContext:
             from ..rendering.api import load_model
 
             stamp = os.stat(Path(self.root) / "model.json").st_mtime_ns
-            self._face = worker_cached(("model", self.root, stamp, self.cache_bytes),
-                                       lambda: load_model(self.root, self.cache_bytes))
+            self._face = worker_cached(("model", self.root, stamp, self.cache_bytes, self.method),
+                                       lambda: load_model(self.root, self.cache_bytes).use_method(*self.method))
         return self._face
 
 
@@ -177,8 +178,13 @@ class FrameObserver:
 
 def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: int | None = None, spp: int = 4,
           frames=None, exr: bool = True, video: bool = True, weight_sigma: float = 2.0, progress: bool = True,
-          log=None, observer: FrameObserver | None = None, executor: Executor | None = None) -> Path:
+          log=None, observer: FrameObserver | None = None, executor: Executor | None = None,
+          method: str | None = None, rank: int | None = None) -> Path:
     """Drive ``model`` with ``track``; returns the output folder (see the module docstring).
+
+    ``method``/``rank``: light the fields by a compression method (``sh`` 3: the copy ``mifacerf compress``
+    wrote; :meth:`.rendering.api.FaceModel.use_method`); None: the model's renderer as it is (``exact`` for
+    a folder).
 
     ``executor`` (:mod:`mifacerf.execution`; default: this process) renders the frames, one unit each
     (:func:`render_frame`); everything else stays in this process and sees the whole sequence in order:
@@ -190,13 +196,13 @@ def drive(track, model, out=None, envs=("sky", "interior"), camera=None, size: i
     # one transaction: written beside the folder, swapped in when complete (a second drive on it: exit 3)
     with OutputFolder(target, "drive.json", TrackError, what="drive") as output:
         _drive(tr, model, output.root, envs, camera, size, spp, frames, exr, video, weight_sigma, progress, log,
-               observer, executor)
+               observer, executor, method, rank)
         output.finish()
     return target
 
 
 def _drive(tr, model, out, envs, camera, size, spp, frames, exr, video, weight_sigma, progress, log, observer,
-           executor) -> None:
+           executor, method=None, rank=None) -> None:
     """:func:`drive`'s work, written into ``out`` (the new folder, swapped in by the caller)."""
     from tqdm.auto import tqdm
 
@@ -204,6 +210,8 @@ def _drive(tr, model, out, envs, camera, size, spp, frames, exr, video, weight_s
     from ..rendering.api import composite, environment_plate, load_model
 
     face = model if hasattr(model, "renderer") else load_model(model)
+    if method is not None:
+        face.use_method(method, rank)
     if frames is None:
         fl = list(range(tr.n_frames))
     elif isinstance(frames, (tuple, list)):
@@ -233,7 +241,10 @@ def _drive(tr, model, out, envs, camera, size, spp, frames, exr, video, weight_s
 
     meta = {"format": FORMAT, "version": 1, "track": str(tr.root.resolve()), "model": str(Path(face.model.root).resolve()),
             "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1],
-            "frame_step": fl[1] - fl[0] if n > 1 else 1, "fps": tr.fps, "spp": spp, "environments": {},
+            "frame_step": fl[1] - fl[0] if n > 1 else 1, "fps": tr.fps, "spp": spp,
+            "method": {"name": face.renderer.method,
+                       "rank": face.renderer.rank if face.renderer.method != "exact" else None},
+            "environments": {},
             "weights": {"seconds_per_frame": round(weights_s, 4), "temporal_sigma_frames": weight_sigma,
                         "coherence": weight_summary(W), "coherence_unsmoothed": weight_summary(W_raw)}}
     if observer is not None:

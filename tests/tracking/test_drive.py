@@ -123,6 +123,11 @@ def test_drive_cli(world, tmp_path):
     r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "--env",
                                   "no-such-env", "--frames", "1"])
     assert r.exit_code != 0
+    r = CliRunner().invoke(main, ["drive", str(world["track"].root), "--model", str(world["model"]), "-o",
+                                  str(tmp_path / "c"), "--frames", "1", "--method", "sh", "--rank", "9",
+                                  "--workers", "1"])
+    assert r.exit_code == 1 and "mifacerf compress" in r.output and "Traceback" not in r.output
+    assert len(r.output.strip().splitlines()) == 1, r.output
 
 
 @pytest.mark.slow

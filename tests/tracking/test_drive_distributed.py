@@ -77,3 +77,34 @@ def test_a_worker_killed_mid_run(world, one_process, cluster, tmp_path):
     cluster.client.wait_for_workers(2, timeout=120)
     assert killer.killed not in cluster.client.run(os.getpid).values()
     np.testing.assert_array_equal(np.load(out / "weights.npz")["weights"], np.load(one_process / "weights.npz")["weights"])
+
+
+@pytest.mark.slow
+def test_a_compressed_drive_is_lit_by_its_method_on_the_workers_too(world, one_process, cluster, tmp_path):
+    """``drive(method="sh", rank=2)``: the workers light the frames by the same compressed copy (the same files
+    as one process, bitwise), not the exact fields (its frames differ from the exact drive's, a little);
+    drive.json says which; a rank the model does not hold is one error naming the command that writes it."""
+    import shutil
+
+    import imageio.v2 as iio
+
+    from mifacerf.rendering.compression import compress_model
+    from mifacerf.rendering.model import Model
+
+    shutil.copytree(world["model"], tmp_path / "model")
+    compress_model(Model(tmp_path / "model"), 2, progress=False, method="sh")
+    one = drive(world["track"], tmp_path / "model", tmp_path / "s1", method="sh", rank=2, **OPTIONS)
+    two = drive(world["track"], tmp_path / "model", tmp_path / "s2", executor=cluster, method="sh", rank=2, **OPTIONS)
+    assert_same(one, two)
+    assert json.loads((one / "drive.json").read_text())["method"] == {"name": "sh", "rank": 2}
+    assert json.loads((one_process / "drive.json").read_text())["method"] == {"name": "exact", "rank": None}
+    name = sorted(p.name for p in (one / "sky" / "frames").glob("*.png"))[3]
+    a = iio.imread(one / "sky" / "frames" / name).astype(float)
+    b = iio.imread(one_process / "sky" / "frames" / name).astype(float)
+    mse = ((a - b) ** 2).mean()
+    assert 0 < mse and 10 * np.log10(255 ** 2 / mse) > 25
+    with pytest.raises(ValueError, match=r"mifacerf compress .* --method sh --rank 3"):
+        drive(world["track"], tmp_path / "model", tmp_path / "s3", method="sh", rank=3, **OPTIONS)
+    assert not (tmp_path / "s3").exists()
+    with pytest.raises(ValueError, match="unknown compression method"):
+        drive(world["track"], tmp_path / "model", tmp_path / "s4", method="svd", rank=3, **OPTIONS)
