@@ -90,7 +90,7 @@ class FrameContext:
     def __init__(self, face, env, camera, spp: int):
         self._face, self.root, self.env, self.camera, self.spp = face, str(face.model.root), env, camera, spp
         self.cache_bytes = getattr(face.model, "cache_bytes", 4 << 30)
-        self.method = (face.renderer.method, face.renderer.rank if face.renderer.method != "exact" else None)
+        self.method = lit_by(face)
 
     def __getstate__(self):
         return {**self.__dict__, "_face": None}
@@ -103,6 +103,13 @@ class FrameContext:
             self._face = worker_cached(("model", self.root, stamp, self.cache_bytes, self.method),
                                        lambda: load_model(self.root, self.cache_bytes).use_method(*self.method))
         return self._face
+
+
+def lit_by(face) -> tuple[str, int | None]:
+    """(method, rank) ``face``'s renderer lights its fields by (rank None for ``exact``; a renderer that
+    does not say: ``exact``)."""
+    method = getattr(face.renderer, "method", "exact")
+    return method, (getattr(face.renderer, "rank", None) if method != "exact" else None)
 
 
 def render_frame(context: FrameContext, unit: tuple) -> tuple[np.ndarray, float]:
@@ -242,8 +249,7 @@ def _drive(tr, model, out, envs, camera, size, spp, frames, exr, video, weight_s
     meta = {"format": FORMAT, "version": 1, "track": str(tr.root.resolve()), "model": str(Path(face.model.root).resolve()),
             "camera": cam.to_dict(), "n_frames": n, "frames": [fl[0], fl[-1] + 1],
             "frame_step": fl[1] - fl[0] if n > 1 else 1, "fps": tr.fps, "spp": spp,
-            "method": {"name": face.renderer.method,
-                       "rank": face.renderer.rank if face.renderer.method != "exact" else None},
+            "method": dict(zip(("name", "rank"), lit_by(face))),
             "environments": {},
             "weights": {"seconds_per_frame": round(weights_s, 4), "temporal_sigma_frames": weight_sigma,
                         "coherence": weight_summary(W), "coherence_unsmoothed": weight_summary(W_raw)}}
