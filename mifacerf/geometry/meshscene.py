@@ -104,11 +104,12 @@ class MeshScene:
         from . import raster
 
         if samples is not None and raster.available() and self._mi.variant().startswith("llvm"):
+            tess = self._tessellation()
             found = raster.camera_hits(self._raster_vertices(), self._raster_faces(), camera.centre, camera.R,
-                                       samples, cull_back=True, tessellation=self._tessellation())
+                                       samples, cull_back=True, tessellation=tess)
             if found is not None:
                 tri, sub, bary, t = found
-                return Hits(tri >= 0, tri, bary, t, sub=None if self._tessellation() is None else sub)
+                return Hits(tri >= 0, tri, bary, t, sub=None if tess is None else sub)
         return self.trace(camera.centre, directions, cull_back=True)
 
     def _raster_vertices(self) -> np.ndarray:

@@ -69,7 +69,8 @@ class FaceModel:
         if m.compress is None:
             if rank is not None:
                 raise ValueError(f"the {method!r} method takes no rank (got --rank {rank})")
-            self.renderer = Renderer(self.model)
+            if self.renderer.method != method:   # the renderer it has already lights so: kept, warm
+                self.renderer = Renderer(self.model)
             return self
         have = sorted(self.model.meta.get("compressed", {}).get(method, []))
         if rank is None or int(rank) not in have:
@@ -77,7 +78,8 @@ class FaceModel:
             listed = f"it holds {method} ranks {', '.join(map(str, have))}" if have else f"it holds no {method} copy"
             raise ValueError(f"{self.model.root}: {wanted} of the {method!r} method is needed and {listed} "
                              f"(mifacerf compress {self.model.root} --method {method} --rank {rank or 'K'})")
-        self.renderer = Renderer(self.model, method=method, rank=int(rank))
+        if (self.renderer.method, self.renderer.rank) != (method, int(rank)):
+            self.renderer = Renderer(self.model, method=method, rank=int(rank))
         return self
 
     @property

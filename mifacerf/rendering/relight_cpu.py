@@ -14,9 +14,9 @@ Dr.Jit's, so the two agree to float32 rounding (images 150 dB apart), not bit fo
 
 :func:`lit_images` also takes over the chunk loop's texel selection in NumPy (the texels whose
 weight Σ b a is positive, their ĉ): the kernel tests each texel of the field itself. A frame's chunks are
-cut into work items of :data:`WORK_ROWS` rows (more where rows are short) and lit by :func:`threads` Python threads, each calling the
-serial kernel without the GIL (one parallel Numba launch per chunk cost more than the light sum of a
-small chunk; 113 chunks a drive frame). The images are made on the host and handed to Dr.Jit once.
+cut into work items of :data:`WORK_ROWS` rows (more where rows are short) and lit by :func:`threads`
+Python threads (:mod:`mifacerf.hostpool`), each calling the serial kernel without the GIL (one parallel
+Numba launch per chunk cost more than the light sum of a small chunk; 113 chunks a drive frame). The images are made on the host and handed to Dr.Jit once.
 
 Used by ``Renderer.light_frame`` for the ``exact`` method on the ``llvm_*`` variants when Numba is
 importable (:func:`.relight.cpu_kernel`; ``MIFACERF_NUMBA_RELIGHT=0`` keeps Dr.Jit's kernel); the CUDA
@@ -28,6 +28,8 @@ Measured: docs/rendering.md, "Sixth pass".
 from __future__ import annotations
 
 import numpy as np
+
+from ..hostpool import run_all, threads  # noqa: F401  (threads: the count that lights a frame's chunks)
 
 _KERNELS = None
 _UNAVAILABLE = None     # the reason Numba cannot be used, once found
@@ -69,12 +71,6 @@ def _kernels():
 #: dispatch (~20 µs) stays small beside its work
 WORK_ROWS = 2048
 WORK_VALUES = WORK_ROWS * 576
-
-def threads() -> int:
-    """Threads that light a frame's chunks: Dr.Jit's thread count (:func:`mifacerf.hostpool.threads`)."""
-    from ..hostpool import threads as host_threads
-
-    return host_threads()
 
 
 def check_map(bary, fv, lin, cov, n_vertices: int, pixels: int) -> tuple:
@@ -143,8 +139,6 @@ def lit_images(fields: list, lights: list, chunk_light, weights: np.ndarray, map
     def work():
         for i, (c, a, b) in todo:          # next() under the GIL: each item taken once
             counts[i] = run(*args[c], a, b)
-
-    from ..hostpool import run_all
 
     run_all([work] * min(threads(), len(items)))
     lit = np.bincount([c for c, _, _ in items], weights=counts, minlength=len(args)).astype(np.int64)

@@ -663,9 +663,6 @@ class CameraRays:
         self.d_cam, self.R = d_cam, np.asarray(R, np.float64)
         self._all = None
 
-    def __len__(self) -> int:
-        return len(self.d_cam)
-
     def __getitem__(self, rows) -> np.ndarray:
         if self._all is not None:
             return self._all[rows]
