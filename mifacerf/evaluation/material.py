@@ -667,6 +667,11 @@ def main(argv=None) -> None:
     if a.near_occluders is not None:
         bsdf["near_occluders"] = a.near_occluders
     bsdf = bsdf or None
+    for integ in a.integrators.split(","):
+        try:
+            _integrator_options(integ)
+        except ValueError as e:   # one line naming the option, as argparse's own errors
+            ap.error(f"--integrators: {e}")
     if a.regions:
         out = regions(a.model, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0], bsdf=bsdf)
         rows = out.pop("rows")

@@ -61,3 +61,19 @@ def test_regions_splits_the_error_by_pixel_class(toy_model, mi):
         assert 0 < by["skin"]["error_share"] <= 1.0001
         assert 0 < out["worst_1pc"] <= out["worst_5pc"] <= 1
         assert 0.5 < out["brightness"] < 1.5, out
+
+
+def test_integrator_options_on_the_command_line(capsys):
+    """``NAME:key=value,...`` of ``--integrators``: booleans, integers, floats and strings; a bare key is one
+    argparse error naming the option, no traceback."""
+    import pytest
+
+    from mifacerf.evaluation import material as M
+
+    assert M._integrator_options("direct") == ("direct", {})
+    assert M._integrator_options("facerf_direct:part_rays=false,emitter_samples=4,x=0.5,y=z") == (
+        "facerf_direct", {"part_rays": False, "emitter_samples": 4, "x": 0.5, "y": "z"})
+    with pytest.raises(SystemExit):
+        M.main(["no-model", "--regions", "--integrators", "facerf_direct:part_rays"])
+    err = capsys.readouterr().err
+    assert "--integrators: integrator option 'part_rays': expected key=value" in err and "Traceback" not in err
