@@ -157,7 +157,8 @@ class FaceRFBSDF(mi.BSDF):
         self.n_skin_faces = shape.geometry.n_skin_faces
         if self.state is None or self.state.model is not shape.face.model:
             self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis,
-                                       self_visibility=self.self_visibility, **self.fields)
+                                       self_visibility=self.self_visibility, curved=shape.geometry.curved,
+                                       **self.fields)
         else:
             self.state.update(pose.target, pose.weights)
         if self.with_parts and shape.geometry.part_names:   # eyes, teeth, mouth interior: their own response

@@ -160,7 +160,7 @@ class MaterialState:
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
                  rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell",
-                 visibility_grid: int = GRID_ORDER, near_occluders: float = 0.0):
+                 visibility_grid: int = GRID_ORDER, near_occluders: float = 0.0, curved: int = 1):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -195,6 +195,11 @@ class MaterialState:
         self._vis_sources: list[int] = []
         # metres: the skin within this distance of a hit does not shadow it (facerf_direct's shadow rays; 0: Mitsuba's)
         self.near_occluders = float(near_occluders)
+        # the Phong level of the skin the scene traces (a facerf_face shape's): the surface the captured
+        # self-visibility is traced on, so that it is what the shadow rays from a hit there let through
+        from ..geometry.boubekeur2008 import check_curved
+
+        self.curved = check_curved(curved)
         if not self.near_occluders >= 0:
             raise ValueError(f"near_occluders must be >= 0 metres (got {near_occluders})")
         if self.near_occluders > 0 and self_visibility and not self.visibility_grid:
@@ -325,8 +330,8 @@ class MaterialState:
         from .self_visibility import source_triangle_visibility
 
         mi, model = self.mi, self.model
-        grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid, self.near_occluders)
-                 for s in sources]
+        grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid, self.near_occluders,
+                                            self.curved) for s in sources]
         base = np.zeros(len(model.expressions), np.uint32)
         for k, s in enumerate(sources):
             base[s] = k * self.n_triangles

@@ -270,7 +270,7 @@ NEAR_STEP = 1e-5
 
 
 def triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
-                        n: int = CELL_SAMPLES, near: float = 0.0) -> np.ndarray:
+                        n: int = CELL_SAMPLES, near: float = 0.0, curved: int = 1) -> np.ndarray:
     """(F, (order+1)², L) float32: the self-visibility of each light (``rule`` as :func:`visibility`) at the
     grid points of every triangle (:func:`grid_barycentrics`), traced from the point on the triangle with its
     geometric normal — what the integrator's shadow rays from a hit there let through (``near`` > 0: rays that
@@ -279,7 +279,14 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
     The per-vertex values (:func:`cell_visibility`) interpolated across a triangle of a coarse template miss
     what happens inside it: in a crease (under the lower lip) the vertices sit in the fold, their cells
     mostly blocked (v ≈ 0.2), while the triangle's interior sees the frontal lights freely — the material's
-    division by the interpolated v made those pixels 3–4× too bright (draft model, docs/rendering.md)."""
+    division by the interpolated v made those pixels 3–4× too bright (draft model, docs/rendering.md).
+
+    ``curved`` > 1: the surface is the Phong surface of that level (:mod:`~mifacerf.geometry.boubekeur2008`,
+    the skin a ``facerf_face`` shape puts in the scene for a model of that ``surface``): a grid point lies on
+    the flat sub-face holding its barycentrics, the ray leaves it with that sub-face's normal, and the rays
+    meet the Phong surface — what the shadow rays from a hit there meet. Flat (1), the template's triangles:
+    on the demo model's Phong scene these disagreed with the shadow rays on the tilted facets beside the nose
+    (docs/rendering.md, "The visibility on the surface the scene traces")."""
     if rule not in VISIBILITY_RULES:
         raise ValueError(f"self-visibility rule {rule!r} is not one of {', '.join(VISIBILITY_RULES)}")
     V = np.asarray(vertices, np.float64)
@@ -289,10 +296,14 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
     k = int(order)
     ij = np.array([(i, j) for i in range(k + 1) for j in range(k + 1)])
     valid = ij.sum(1) <= k
-    P = np.einsum("gk,fkd->fgd", B[valid], V[F])                       # (F, Pv, 3)
-    nrm = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
-    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-    Nn = np.repeat(nrm[:, None], valid.sum(), 1)
+    if int(curved) > 1:
+        V, F, P, Nn = _on_phong_surface(V, F, B[valid], int(curved))
+    else:
+        P = np.einsum("gk,fkd->fgd", B[valid], V[F])                   # (F, Pv, 3)
+        nrm = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+        Nn = np.repeat(nrm[:, None], valid.sum(), 1)
+    n_faces = len(np.asarray(triangles).reshape(-1, 3))
     if rule == "ray":
         vis = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld, near=near).astype(np.float32)
     else:
@@ -307,32 +318,58 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
         if empty.any():
             vis[:, empty] = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld[empty],
                                        near=near).astype(np.float32)
-    out = np.ones((len(F), len(B), len(Ld)), np.float32)
-    out[:, valid] = vis.reshape(len(F), valid.sum(), len(Ld))
+    out = np.ones((n_faces, len(B), len(Ld)), np.float32)
+    out[:, valid] = vis.reshape(n_faces, valid.sum(), len(Ld))
     return out
 
 
+def _on_phong_surface(V, F, bary, level: int):
+    """The Phong surface of level ``level`` over vertices ``V`` (T, 3) and triangles ``F`` (F, 3), and the points
+    of barycentrics ``bary`` (G, 3) of every triangle on it: (sub-vertices (T', 3), sub-faces (F', 3), points
+    (F, G, 3) on the flat sub-face holding each, that sub-face's unit normal (F, G, 3)). The sub-face is the one
+    whose corners' barycentrics (``PhongTessellation.corner_bary``) hold the point with all weights >= 0 — the
+    inverse of the scene's map from a sub-face hit to the template triangle."""
+    from ..geometry.boubekeur2008 import PhongTessellation
+
+    t = PhongTessellation(F, len(V), level)
+    Vs = t.positions(V)
+    per = level * level                                    # every face is curved: its sub-faces are contiguous
+    C = t.corner_bary.reshape(len(F), per, 3, 3)           # (F, per, corner k, coarse barycentric)
+    Minv = np.linalg.inv(np.transpose(C[0], (0, 2, 1)))    # the same lattice in every face: (per, 3, 3)
+    w = np.einsum("skc,gc->gsk", Minv, np.asarray(bary, np.float64))   # (G, per, 3) weights on each sub-face
+    sub = np.argmax(w.min(-1), axis=1)                     # (G,) the sub-face holding each grid point
+    wg = w[np.arange(len(bary)), sub]                      # (G, 3)
+    faces = t.faces.reshape(len(F), per, 3)[:, sub]        # (F, G, 3)
+    corners = Vs[faces]                                    # (F, G, 3, 3)
+    P = np.einsum("gk,fgkd->fgd", wg, corners)
+    nrm = np.cross(corners[:, :, 1] - corners[:, :, 0], corners[:, :, 2] - corners[:, :, 0])
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=-1, keepdims=True), 1e-30)
+    return Vs, t.faces, P, nrm
+
+
 def source_triangle_visibility(model, source: int, rule: str = "cell", order: int = GRID_ORDER,
-                               near: float = 0.0) -> np.ndarray:
+                               near: float = 0.0, curved: int = 1) -> np.ndarray:
     """:func:`triangle_visibility` of source expression ``source`` of ``model`` against its registered mesh
     (cached in memory per model folder, source, rule, order and ``near``, and on disk by what it is computed
     from: :func:`cached_triangle_visibility`; computed when a material first uses it)."""
-    key = (_key(model), "grid", int(source), rule, int(order), float(near))
+    key = (_key(model), "grid", int(source), rule, int(order), float(near), int(curved))
     with _LOCK:
         if key not in _CACHE:
             _CACHE[key] = cached_triangle_visibility(model.vertices[source], model.triangles,
-                                                     model.light_directions, rule, order, near=near)
+                                                     model.light_directions, rule, order, near=near,
+                                                     curved=curved)
         return _CACHE[key]
 
 
-def _disk_path(vertices, triangles, directions, rule, order, near) -> Path | None:
+def _disk_path(vertices, triangles, directions, rule, order, near, curved: int = 1) -> Path | None:
     import hashlib
 
     from ..formats.files import switched_off, user_cache_dir
 
     if switched_off("MIFACERF_VISIBILITY_CACHE"):
         return None
-    h = hashlib.sha256(repr((CACHE_VERSION, rule, int(order), float(near), CELL_SAMPLES)).encode())
+    what = (CACHE_VERSION, rule, int(order), float(near), CELL_SAMPLES) + ((int(curved),) if int(curved) > 1 else ())
+    h = hashlib.sha256(repr(what).encode())
     for a in (np.asarray(vertices, np.float64), np.asarray(triangles, np.int64), np.asarray(directions, np.float64)):
         h.update(repr(a.shape).encode())
         h.update(np.ascontiguousarray(a).tobytes())
@@ -340,14 +377,14 @@ def _disk_path(vertices, triangles, directions, rule, order, near) -> Path | Non
 
 
 def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
-                               near: float = 0.0) -> np.ndarray:
+                               near: float = 0.0, curved: int = 1) -> np.ndarray:
     """:func:`triangle_visibility`, read from the user's cache when an earlier process computed it from the
     same inputs (module doc), else computed and written there (atomically)."""
     import warnings
 
     from ..formats.files import save_npy_atomic
 
-    path = _disk_path(vertices, triangles, directions, rule, order, near)
+    path = _disk_path(vertices, triangles, directions, rule, order, near, curved)
     want = (len(np.asarray(triangles).reshape(-1, 3)), len(grid_barycentrics(order)), len(directions))
     if path is not None and path.exists():
         try:
@@ -362,7 +399,7 @@ def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cel
         except (OSError, ValueError, EOFError) as exc:
             problem = str(exc) or type(exc).__name__
         warnings.warn(f"{path}: a damaged self-visibility cache file ({problem}); recomputed", stacklevel=2)
-    out = triangle_visibility(vertices, triangles, directions, rule, order, near=near)
+    out = triangle_visibility(vertices, triangles, directions, rule, order, near=near, curved=curved)
     if path is not None:
         try:
             save_npy_atomic(path, out)

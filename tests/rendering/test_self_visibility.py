@@ -255,3 +255,56 @@ def test_a_bad_cache_bound_is_named(tmp_path, monkeypatch):
     monkeypatch.setenv("MIFACERF_VISIBILITY_CACHE_MB", "lots")
     with pytest.warns(UserWarning, match="MIFACERF_VISIBILITY_CACHE_MB='lots' is not a size"):
         assert trim_cache(tmp_path) == []
+
+
+def test_on_the_phong_surface_the_grid_lies_on_the_scene_skin_and_faces_its_sub_faces(mi):
+    """``curved`` > 1: each grid point lies on the Phong surface the scene traces — a ray cast down onto it from
+    1 mm out (Mitsuba's own intersection with the tessellated mesh) meets it there, on a sub-face whose map back to
+    the template triangle (``PhongTessellation.to_coarse``) gives the grid point's own triangle and barycentrics —,
+    and a light is seen iff it lies in front of the plane of the sub-face Mitsuba reports (away from grazing). The
+    flat rule answers otherwise for some of them (the template's facets are tilted against the sub-faces)."""
+    from mifacerf.geometry.boubekeur2008 import PhongTessellation
+    from mifacerf.jitarrays import to_jit
+    from mifacerf.rendering.self_visibility import _on_phong_surface, grid_barycentrics, triangle_visibility
+
+    V, F = _sphere(40)
+    level, order = 3, 2          # order 2's inset points lie inside level 3's sub-faces, not on their edges
+    rng = np.random.default_rng(7)
+    D = rng.normal(size=(24, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    vis = triangle_visibility(V, F, D, rule="ray", order=order, curved=level)
+    flat = triangle_visibility(V, F, D, rule="ray", order=order)
+    B = grid_barycentrics(order)
+    ij = np.array([(i, j) for i in range(order + 1) for j in range(order + 1)])
+    valid = ij.sum(1) <= order
+    G = int(valid.sum())
+    assert vis.shape == flat.shape == (len(F), len(B), len(D)) and (vis[:, ~valid] == 1).all()
+
+    t = PhongTessellation(F, len(V), level)
+    Vs = t.positions(V)
+    mesh = mi.Mesh("phong", len(Vs), len(t.faces))
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = to_jit(mi.Float, Vs.reshape(-1).astype(np.float32))
+    params["faces"] = to_jit(mi.UInt32, t.faces.reshape(-1).astype(np.uint32))
+    params.update()
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    _, _, P, N = _on_phong_surface(V, F, B[valid], level)
+    P, N = P.reshape(-1, 3), N.reshape(-1, 3)
+    assert (np.einsum("nd,nd->n", N, P) > 0).all()                       # outward
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f((P + 1e-3 * N).T.astype(np.float32)),
+                                      mi.Vector3f((-N).T.astype(np.float32))))
+    assert np.asarray(si.is_valid()).all()
+    np.testing.assert_allclose(np.asarray(si.t), 1e-3, atol=2e-6)
+    hit, n = np.asarray(si.p).T, np.asarray(si.n).T
+    np.testing.assert_allclose(np.einsum("nd,nd->n", n, N), 1.0, atol=1e-5)
+    sub = np.asarray(si.prim_index, np.int64)
+    tri = Vs[t.faces[sub]]                                               # (N, 3 corners, 3)
+    A = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], -1)
+    w = np.stack([np.linalg.lstsq(A[k], hit[k] - tri[k, 0], rcond=None)[0] for k in range(len(hit))])
+    coarse, cb = t.to_coarse(sub, np.stack([1 - w.sum(1), w[:, 0], w[:, 1]], 1))
+    np.testing.assert_array_equal(coarse, np.repeat(np.arange(len(F)), G))
+    np.testing.assert_allclose(cb, np.tile(B[valid], (len(F), 1)), atol=1e-4)
+    cos = (n @ D.T).reshape(len(F), G, len(D))
+    v = vis[:, valid]
+    assert (v[cos > 0.15] == 1).all() and (v[cos < -0.05] == 0).all()
+    assert (flat[:, valid] != v).any()
