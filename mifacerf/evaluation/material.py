@@ -45,9 +45,11 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray, peak: np.ndarray | None
 
 
 def compare(model, env: str = "sky", integrators=("direct", "path"), size: int = 48, spp: int = 256,
-            expression: str | None = None, camera=None, exact_basis: str = "voronoi", bsdf=None) -> list[dict]:
+            expression: str | None = None, camera=None, exact_basis: str = "voronoi", bsdf=None,
+            eye=(0.12, 0.1, 1.0)) -> list[dict]:
     """Rows {integrator, psnr, noise_floor, brightness, seconds} of the material against the exact path
-    under the environment ``env`` (a generated name or a lat-long file)."""
+    under the environment ``env`` (a generated name or a lat-long file), seen from ``eye`` (metres, the
+    model's frame) towards the origin unless ``camera`` is given."""
     from ..camera import Camera
     from ..environment import GENERATORS, cache_dir, generated
     from ..variant import ensure_plugins
@@ -58,7 +60,7 @@ def compare(model, env: str = "sky", integrators=("direct", "path"), size: int =
         env = str(cache_dir() / "environments" / f"{env}-128.exr")
     emitter = {"type": "envmap", "filename": str(env)}
     if camera is None:
-        camera = Camera.look_at("eval", [0.12, 0.1, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.0)
+        camera = Camera.look_at("eval", list(eye), [0, 0, 0], width=size, height=size, focal=size * 4.0)
     exact_scene = _scene(mi, model, {"type": "facerf", "light_basis": exact_basis}, emitter, camera, 16, expression)
     ref, mask, t_exact = _reference(mi, exact_scene)
     rows = [{"integrator": "facerf (exact)", "psnr": None, "noise_floor": None, "brightness": 1.0,
@@ -636,6 +638,8 @@ def main(argv=None) -> None:
     ap.add_argument("--expression", default=None)
     ap.add_argument("--integrators", default="direct,path")
     ap.add_argument("--exact-basis", default="voronoi")
+    ap.add_argument("--eye", default="0.12,0.1,1.0", help="X,Y,Z: the camera's position in metres, looking at "
+                    "the origin (the comparison only)")
     ap.add_argument("--no-self-visibility", action="store_true", help="the material keeps the captured "
                     "self-shadowing (shadowed again by the shadow rays)")
     ap.add_argument("--visibility-rule", default=None, help="the material's self-visibility rule: cell "
@@ -659,6 +663,12 @@ def main(argv=None) -> None:
                     "integrator (facerf_direct:part_rays=false)")
     ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
+    try:
+        eye = tuple(float(v) for v in a.eye.split(","))
+        if len(eye) != 3 or not np.all(np.isfinite(eye)) or np.linalg.norm(eye) < 1e-6:
+            raise ValueError
+    except ValueError:
+        ap.error(f"--eye: expected three finite numbers X,Y,Z away from the origin, got {a.eye!r}")
     bsdf = {"self_visibility": False} if a.no_self_visibility else {}
     if a.visibility_rule:
         bsdf["visibility_rule"] = a.visibility_rule
@@ -702,7 +712,7 @@ def main(argv=None) -> None:
                 print(integ, r)
         return
     print(format_rows(compare(a.model, a.env, a.integrators.split(","), a.size, a.spp, a.expression,
-                              exact_basis=a.exact_basis, bsdf=bsdf)))
+                              exact_basis=a.exact_basis, bsdf=bsdf, eye=eye)))
 
 
 if __name__ == "__main__":
