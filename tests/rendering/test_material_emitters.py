@@ -77,3 +77,18 @@ def test_integrator_options_on_the_command_line(capsys):
         M.main(["no-model", "--regions", "--integrators", "facerf_direct:part_rays"])
     err = capsys.readouterr().err
     assert "--integrators: integrator option 'part_rays': expected key=value" in err and "Traceback" not in err
+
+
+def test_a_malformed_eye_is_one_line_naming_the_option(capsys):
+    """``--eye`` takes three finite numbers away from the origin; anything else is one argparse error naming
+    the option, before any model is opened (the model path here does not exist)."""
+    import pytest
+
+    from mifacerf.evaluation import material as M
+
+    for bad in ("1,2", "a,b,c", "0,0,0", "nan,0,1"):
+        with pytest.raises(SystemExit):
+            M.main(["no-model", "--eye", bad])
+        err = capsys.readouterr().err
+        assert f"--eye: expected three finite numbers X,Y,Z away from the origin, got {bad!r}" in err, err
+        assert "Traceback" not in err
