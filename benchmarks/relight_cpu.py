@@ -1,10 +1,12 @@
 """A frame's host (Numba) kernels against what they replace, side by side::
 
-    python benchmarks/relight_cpu.py MODEL TRACK [--reps 3] [--env sky] [--size 256] [--switch relight|raster]
+    python benchmarks/relight_cpu.py MODEL TRACK [--reps 3] [--env sky] [--size 256] [--switch relight|raster|part-rays]
 
 ``--switch relight`` (the default): the relight sum on the CPU (``relight_cpu``) against Dr.Jit's kernel
 (``Renderer.cpu_relight`` True / False); ``--switch raster``: the primary hits rasterised
-(``geometry.raster``) against Mitsuba's ray cast (``MIFACERF_NUMBA_RASTER`` 1 / 0).
+(``geometry.raster``) against Mitsuba's ray cast (``MIFACERF_NUMBA_RASTER`` 1 / 0); ``--switch part-rays``:
+the parts' rays cast into the scene curved only round the parts (``CombinedScene.rays``, the default)
+against the whole Phong scene (before 2026-12-04).
 
 Three kinds of warm 256² frames, 4 spp, each rendered by one renderer with ``cpu_relight`` True and then
 False, alternating frame by frame: five frames of the tracked performance ``TRACK`` (the §5 weights of
@@ -33,7 +35,7 @@ def main(argv=None) -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--env", default="sky")
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--switch", choices=("relight", "raster"), default="relight")
+    ap.add_argument("--switch", choices=("relight", "raster", "part-rays"), default="relight")
     a = ap.parse_args(argv)
     import drjit as dr
 
@@ -67,6 +69,13 @@ def main(argv=None) -> None:
 
         def use(flag):
             r.cpu_relight = flag
+    elif a.switch == "part-rays":
+        ways = {"new": True, "old": False}
+        names = ("whole scene", "curved round the parts")
+        reduced = r._combined.rays
+
+        def use(flag):
+            r._combined.rays = reduced if flag else r._combined.scene
     else:
         ways = {"new": "1", "old": "0"}
         names = ("ray cast", "raster")

@@ -76,6 +76,31 @@ def test_only_the_chosen_faces_are_split():
     assert np.array_equal(t.faces[flat_rows], F[~only])
 
 
+def test_a_part_curved_with_the_whole_surfaces_normals_has_the_whole_surfaces_sub_faces():
+    """``normals_from``: curving a patch of a surface with the vertex normals of the whole gives each patch
+    face the very sub-faces of the whole surface curved (a scene can curve only where it matters); with the
+    patch's own normals (the default) the faces on the patch's rim bend otherwise."""
+    V, F = icosphere(2)
+    V = V * np.array([1.0, 0.8, 1.3])              # an ellipsoid: the normals are not the positions
+    only = V[F].mean(1)[:, 2] > 0.6                 # a cap
+    whole = PhongTessellation(F, len(V), level=3)
+    patch = PhongTessellation(F, len(V), level=3, only=only, normals_from=np.ones(len(F), bool))
+    own = PhongTessellation(F, len(V), level=3, only=only)
+
+    def corners(t, P):
+        # the sub-faces' corner points of each patch face, by the face and the corners' barycentrics
+        rows = np.flatnonzero(only[t.parent])
+        keys = list(t.corner_bary[rows].reshape(len(rows), -1).round(9).T[::-1]) + [t.parent[rows]]
+        key = np.lexsort(keys)                      # by parent face first, then the corners' barycentrics
+        return P[t.faces[rows[key]]]
+
+    P_whole, P_patch, P_own = whole.positions(V), patch.positions(V), own.positions(V)
+    np.testing.assert_allclose(corners(patch, P_patch), corners(whole, P_whole), atol=1e-12)
+    assert np.abs(corners(own, P_own) - corners(whole, P_whole)).max() > 1e-3
+    with pytest.raises(ValueError, match="normals_from has shape"):
+        PhongTessellation(F, len(V), level=3, only=only, normals_from=np.ones(3, bool))
+
+
 def test_bad_input_names_the_problem():
     V, F = icosphere(0)
     with pytest.raises(ValueError, match="level"):

@@ -35,12 +35,15 @@ class PhongTessellation:
     """The sub-division of a triangle mesh's ``faces`` (F, 3) over ``n_vertices`` vertices at ``level`` ≥ 1.
 
     ``only`` (F,) bool, optional: the faces to curve and split (others pass as one sub-face each, flat,
-    e.g. the eyes and teeth of a combined scene). Attributes: ``faces`` (F', 3) the sub-faces over the
+    e.g. the eyes and teeth of a combined scene). ``normals_from`` (F,) bool, optional: the faces whose
+    area-weighted normals make the vertex normals (default: ``only``) — a scene that curves part of a
+    surface gives those faces the same sub-faces as the whole surface curved, by passing the whole surface
+    here. Attributes: ``faces`` (F', 3) the sub-faces over the
     sub-vertices; ``parent`` (F',) each sub-face's coarse face; ``corner_bary`` (F', 3, 3) its corners'
     barycentrics in that face; ``n_sub`` the number of sub-vertices (the coarse vertices come first, in
     their order)."""
 
-    def __init__(self, faces, n_vertices: int, level: int = 3, only=None, alpha: float = ALPHA):
+    def __init__(self, faces, n_vertices: int, level: int = 3, only=None, alpha: float = ALPHA, normals_from=None):
         F = np.asarray(faces, np.int64).reshape(-1, 3)
         if level < 1 or int(level) != level:
             raise ValueError(f"level must be a whole number >= 1, got {level!r}")
@@ -52,6 +55,10 @@ class PhongTessellation:
         if curve.shape != (len(F),):
             raise ValueError(f"only has shape {curve.shape}; expected ({len(F)},)")
         self.curved = curve
+        normals_from = curve if normals_from is None else np.asarray(normals_from, bool)
+        if normals_from.shape != (len(F),):
+            raise ValueError(f"normals_from has shape {normals_from.shape}; expected ({len(F)},)")
+        self.normals_from = normals_from
         n = self.level
         # the sub-vertices of one triangle on the (n+1)-point lattice: (i, j) with i + j <= n, weights
         # b = ((n - i - j), i, j) / n over its corners (0, 1, 2)
@@ -114,7 +121,8 @@ class PhongTessellation:
 
     def positions(self, V, N=None) -> np.ndarray:
         """The sub-vertices (n_sub, 3) on the Phong surface of vertex positions ``V`` (n_vertices, 3) with unit
-        normals ``N`` (default: the area-weighted vertex normals of the curved faces). A vertex with a zero
+        normals ``N`` (default: the area-weighted vertex normals of the faces ``normals_from``, the curved ones
+        unless told). A vertex with a zero
         normal (in no curved face) contributes its flat point."""
         V = np.asarray(V, np.float64)
         if V.shape != (self.n_vertices, 3):
@@ -122,7 +130,7 @@ class PhongTessellation:
         if N is None:
             from .visibility import vertex_normals
 
-            N = vertex_normals(V, self.coarse[self.curved])
+            N = vertex_normals(V, self.coarse[self.normals_from])
         N = np.asarray(N, np.float64)
         out = np.empty((self.n_sub, 3))
         out[:self.n_vertices] = V

@@ -269,18 +269,19 @@ class MeshScene:
 class CurvedMeshScene(MeshScene):
     """A :class:`MeshScene` whose rays meet the Phong-tessellated surface of its coarse mesh
     (:class:`~mifacerf.geometry.boubekeur2008.PhongTessellation`, ``level`` splits per edge; ``only`` (F,)
-    bool: the faces to curve, the others traced flat) instead of its flat triangles. Everything it
+    bool: the faces to curve, the others traced flat; ``normals_from`` (F,) bool: the faces whose normals
+    bend it, default ``only``) instead of its flat triangles. Everything it
     reports is on the coarse mesh — ``vertices`` (V, 3), ``faces`` (F, 3), :meth:`face_normals` (flat, per
     coarse face), and hits as (coarse triangle, barycentrics there) — so a caller swaps it for a
     :class:`MeshScene` unchanged; the distances ``t`` are to the curved surface. Back faces are culled by
     the sub-triangles' own orientation. ``level = 1`` traces the coarse mesh."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, level: int = 3, only=None):
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, level: int = 3, only=None, normals_from=None):
         from .boubekeur2008 import PhongTessellation
 
         vertices = np.asarray(vertices, np.float64)
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
-        self.tessellation = PhongTessellation(faces, len(vertices), level, only=only)
+        self.tessellation = PhongTessellation(faces, len(vertices), level, only=only, normals_from=normals_from)
         self._curved = MeshScene(self.tessellation.positions(vertices), self.tessellation.faces)
         self._mi, self._dr = self._curved._mi, self._curved._dr
         self.mesh = self._curved.mesh

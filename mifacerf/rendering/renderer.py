@@ -38,7 +38,8 @@ from ..geometry.boubekeur2008 import check_curved
 from ..geometry.meshscene import CurvedMeshScene, MeshScene
 from ..geometry.rigid import apply
 from ..blas import single_threaded_blas
-from .parts import PARTS, CombinedScene, PartFrame, part_meshes, part_transforms, frame_reference, margin_ids
+from .parts import (PART_RAYS_CURVED_RADIUS, PARTS, CombinedScene, PartFrame, frame_reference, margin_ids,
+                    part_meshes, part_transforms)
 from .compression import COMPRESSION_METHODS, DEFAULT_COMPRESSION_METHOD, compression_method
 
 
@@ -150,7 +151,10 @@ class Renderer:
         self._scene = MeshScene(neutral, model.triangles) if self.curved == 1 else \
             CurvedMeshScene(neutral, model.triangles, self.curved)
         meshes = part_meshes(model.template) if model.references else {}
-        self._combined = CombinedScene(neutral, model.triangles, meshes, curved=self.curved) if meshes else None
+        # the parts' rays into a scene whose skin is curved only round the parts (parts.PART_RAYS_CURVED_RADIUS):
+        # its BVH, rebuilt each pose, is the part of a frame's trace that rasterising left (docs/rendering.md)
+        self._combined = CombinedScene(neutral, model.triangles, meshes, curved=self.curved,
+                                       ray_radius=PART_RAYS_CURVED_RADIUS) if meshes else None
         self._margins = margin_ids(model.template)
         # the traced target when flat: a whole-head template's face vertices moved out by the chords' sag
         # (frame.ChordOffset); a face-only template traces its registered mesh as it is
@@ -474,7 +478,7 @@ class Renderer:
         # as MeshScene.render_hits (culled), the rays kept: rasterised (geometry.raster) or ray-cast
         hits = scene.camera_hits(camera, self._sample_grid(camera, spp, seed), dirs)
         if use_parts and (hits.tri[hits.valid] >= len(model.triangles)).any():
-            self._combined.scene.commit()   # rays go into the posed scene now: Mitsuba rebuilds its BVH here
+            self._combined.rays.commit()   # rays go into the posed scene now: Mitsuba rebuilds its BVH here
             self._parts_inside_skin(hits, uv, camera, dirs)
         idx = np.flatnonzero(hits.valid)
         n_skin_tri = len(model.triangles)
@@ -521,7 +525,7 @@ class Renderer:
                     normal[sel] = fn[sel]
             view = camera.centre - p_world
             view /= np.linalg.norm(view, axis=1, keepdims=True)
-            col, cov = pf.shade(self._combined.scene.scene, to_jit(mi.UInt32, label.astype(np.uint32)),
+            col, cov = pf.shade(self._combined.rays.scene, to_jit(mi.UInt32, label.astype(np.uint32)),
                                 to_jit(mi.Point3f, q.T), to_jit(mi.Point3f, p_world.T),
                                 to_jit(mi.Vector3f, normal.T), to_jit(mi.Vector3f, view.T))
             dr.eval(col, cov)
@@ -604,9 +608,9 @@ class Renderer:
         part = np.flatnonzero(hits.valid & (hits.tri >= n_skin_tri))
         if part.size == 0:
             return
-        # the skin behind each part hit, traced in the combined scene (already posed: no second acceleration
-        # structure to rebuild, 2-14 ms a frame) through the parts' own surfaces (an eye: in and out)
-        scene = self._combined.scene
+        # the skin behind each part hit, traced in the combined scene's ray scene (posed and built for the
+        # parts' shadow rays too) through the parts' own surfaces (an eye: in and out)
+        scene = self._combined.rays
         o, d = camera.pixel_rays(uv[part]) if directions is None else (camera.centre, directions[part])
         start = hits.t[part] + 1e-5
         parts = np.arange(len(scene.faces)) >= n_skin_tri

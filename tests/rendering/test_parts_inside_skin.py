@@ -33,7 +33,7 @@ def scene_hits(skin, part, camera):
     scene = MeshScene(V, F)
     hits, uv = scene.render_hits(camera, 1)
     fake = SimpleNamespace(model=SimpleNamespace(triangles=np.asarray(skin.faces)),
-                           _combined=SimpleNamespace(scene=scene))
+                           _combined=SimpleNamespace(scene=scene, rays=scene))
     return hits, uv, fake
 
 
