@@ -213,7 +213,7 @@ PART_RAY_OFFSET = 2e-4
 
 #: metres: in :attr:`CombinedScene.rays`, the skin triangles with a corner this close to a part's rest
 #: surface (the lids round an eye, the lips and cheeks round the mouth) keep the Phong surface; skin farther
-#: off is flat there (docs/rendering.md, "The parts' rays")
+#: off is flat there (docs/rendering.md, "Eighth pass": the parts' rays in a smaller scene)
 PART_RAYS_CURVED_RADIUS = 0.02
 
 
