@@ -49,6 +49,14 @@ samples drawn from it.
        origin (the captured fields hold that self-shadowing already; Mitsuba's own integrators have no such
        rule: use it with ``facerf_direct`` only). 0.015 brings the sides of the draft's nose from 13 % dark to
        2 % (docs/rendering.md, "Near-field shadow rule")
+   * - visibility_emitter
+     - emitter reference — optional: the scene's environment (``envmap`` or ``constant``, by reference:
+       ``<ref name="visibility_emitter" id="ENV"/>``, ``{"type": "ref", "id": "ENV"}``). Each light's cell share
+       of the divided-out visibility is then weighted by that environment's radiance across the cell (the
+       share of the cell's *light* the shadow rays pass) instead of by solid angle; under an environment with
+       concentrated light (a window, the sun) the unweighted share brightens the face where a cell is partly
+       blocked on its bright side (docs/rendering.md, "The visibility weighted by the environment"). Read once,
+       with the face shape's ``to_world`` at that time; cell rule and ``visibility_grid`` > 0 only
    * - sampling
      - string — ``reflectance`` (default: half the samples by the fields' response per light) or ``cosine``
    * - parts
@@ -128,6 +136,11 @@ class FaceRFBSDF(mi.BSDF):
         if not self.fields.get("near_occluders", 0.0) >= 0:
             raise ValueError(f"facerf_bsdf: parameter 'near_occluders': {self.fields['near_occluders']} m; "
                              "give a distance >= 0 (0: no near-field rule)")
+        self.visibility_emitter = None
+        if "visibility_emitter" in props:
+            self.visibility_emitter = _environment_emitter(props["visibility_emitter"])
+            if self.fields.get("visibility_rule", "cell") != "cell":
+                raise ValueError("facerf_bsdf: parameter 'visibility_emitter' needs visibility_rule 'cell'")
         if "model" in props:   # standalone: on a mesh of the target (e.g. a PLY written by scenefile)
             from mifacerf.rendering.scene_assets import open_model
 
@@ -139,7 +152,8 @@ class FaceRFBSDF(mi.BSDF):
             else:
                 verts, W = face.target(expression)
             self.state = MaterialState(face.model, verts, W, light_basis=self.light_basis,
-                                       self_visibility=self.self_visibility, **self.fields)
+                                       self_visibility=self.self_visibility,
+                                       visibility_weights=self._visibility_weights(None), **self.fields)
         flags = (mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
                  | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide)
         self.m_components = [flags]
@@ -156,9 +170,10 @@ class FaceRFBSDF(mi.BSDF):
         pose = shape.pose_state
         self.n_skin_faces = shape.geometry.n_skin_faces
         if self.state is None or self.state.model is not shape.face.model:
+            rotation = np.asarray(shape.to_world.matrix, np.float64).reshape(4, 4)[:3, :3]
             self.state = MaterialState(shape.face.model, pose.target, pose.weights, light_basis=self.light_basis,
                                        self_visibility=self.self_visibility, curved=shape.geometry.curved,
-                                       **self.fields)
+                                       visibility_weights=self._visibility_weights(rotation), **self.fields)
         else:
             self.state.update(pose.target, pose.weights)
         if self.with_parts and shape.geometry.part_names:   # eyes, teeth, mouth interior: their own response
@@ -172,6 +187,18 @@ class FaceRFBSDF(mi.BSDF):
                 self.parts.update(s.pose_state.parts, s.pose_state.weights)
 
         shape.listeners.append(follow)
+
+    def _visibility_weights(self, rotation):
+        """The cell samples' weights from ``visibility_emitter`` (None without one), the face posed by ``rotation``."""
+        if self.visibility_emitter is None:
+            return None
+        from mifacerf.rendering.self_visibility import emitter_weights
+
+        w = emitter_weights(self.visibility_emitter, rotation)
+        if not w.sum() > 0:
+            raise ValueError("facerf_bsdf: parameter 'visibility_emitter': the environment is black along every "
+                             "direction; nothing to weight the visibility by")
+        return w
 
     # --------------------------------------------------------------- sampling
     @staticmethod
@@ -277,6 +304,17 @@ class FaceRFBSDF(mi.BSDF):
 
     def to_string(self):
         return f"FaceRFBSDF[{len(self.state.used)} source expression(s)]"
+
+
+def _environment_emitter(obj):
+    """``obj`` if it is an infinite emitter Mitsuba can evaluate along a direction, else one clear error."""
+    if not isinstance(obj, mi.Emitter):
+        raise ValueError(f"facerf_bsdf: parameter 'visibility_emitter' must reference an emitter "
+                         f"(<ref name=\"visibility_emitter\" id=\"...\"/>); got {type(obj).__name__}")
+    if not mi.has_flag(obj.flags(), mi.EmitterFlags.Infinite) or mi.has_flag(obj.flags(), mi.EmitterFlags.Delta):
+        raise ValueError(f"facerf_bsdf: parameter 'visibility_emitter' must be an environment (envmap or "
+                         f"constant); got {obj.class_().name() if hasattr(obj, 'class_') else type(obj).__name__}")
+    return obj
 
 
 mi.register_bsdf("facerf_bsdf", lambda props: FaceRFBSDF(props))

@@ -648,6 +648,9 @@ def main(argv=None) -> None:
                     "inside each triangle (facerf_bsdf visibility_grid; default 3, 0: per vertex)")
     ap.add_argument("--near-occluders", type=float, default=None, help="metres: the material's near-field shadow "
                     "rule (facerf_bsdf near_occluders), for --integrators facerf_direct")
+    ap.add_argument("--visibility-emitter", action="store_true", help="the material's cell shares of "
+                    "self-visibility weighted by the scene's environment (facerf_bsdf visibility_emitter, a "
+                    "reference to the envmap); the comparison and --regions only")
     ap.add_argument("--directional", action="store_true", help="the closed-form check instead: a directional "
                     "emitter along each of the most frontal light-stage lights (directional_oracle)")
     ap.add_argument("--animation", action="store_true", help="time an animation loop instead (kernels, s/frame)")
@@ -676,6 +679,11 @@ def main(argv=None) -> None:
         bsdf["visibility_grid"] = a.visibility_grid
     if a.near_occluders is not None:
         bsdf["near_occluders"] = a.near_occluders
+    if a.visibility_emitter:
+        others = [o for o in ("parts", "hat", "emitters", "directional", "animation") if getattr(a, o)]
+        if others:
+            ap.error(f"--visibility-emitter: only with the comparison or --regions, not with --{others[0]}")
+        bsdf["visibility_emitter"] = {"type": "ref", "id": "light"}   # the scenes' envmap (_scene's "light")
     bsdf = bsdf or None
     for integ in a.integrators.split(","):
         try:

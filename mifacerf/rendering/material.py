@@ -22,7 +22,8 @@ light-stage rule (:class:`.light_interp.LightInterpolator`, named as the exact p
 does — or ``hat``, barycentric between the three lights round the direction), divided by the source's captured
 self-visibility of that light at the hit (:func:`.self_visibility.triangle_visibility`, a grid inside each
 triangle; ``visibility_grid=0``: the per-vertex values interpolated; ``near_occluders``: traced with the
-near-field rule of the ``facerf_direct`` integrator's shadow rays). The value is
+near-field rule of the ``facerf_direct`` integrator's shadow rays; ``visibility_weights``: each light cell's
+visible share weighted by the scene environment's radiance in it, not by solid angle). The value is
 radiance per unit irradiance — Mitsuba's "BSDF × cosine". Per vertex at most
 ``max_slots`` source expressions (the largest weights) are kept.
 
@@ -160,7 +161,8 @@ class MaterialState:
     def __init__(self, model, target: np.ndarray, weights: np.ndarray, max_slots: int = 4, neighbourhoods=None,
                  light_basis: str = "voronoi", self_visibility: bool = True, method: str = "exact",
                  rank: int | None = None, depth_tolerance: float = None, visibility_rule: str = "cell",
-                 visibility_grid: int = GRID_ORDER, near_occluders: float = 0.0, curved: int = 1):
+                 visibility_grid: int = GRID_ORDER, near_occluders: float = 0.0, curved: int = 1,
+                 visibility_weights=None):
         mi = ensure_variant()
         self.mi = mi
         self.model = model
@@ -204,6 +206,13 @@ class MaterialState:
             raise ValueError(f"near_occluders must be >= 0 metres (got {near_occluders})")
         if self.near_occluders > 0 and self_visibility and not self.visibility_grid:
             raise ValueError("near_occluders needs the triangle grid of self-visibility (visibility_grid > 0)")
+        # (CELL_SAMPLES,) radiance along the cell samples (self_visibility.emitter_weights): each light's cell share
+        # weighted by the environment's light in it, or None (unweighted: the share of the cell's solid angle)
+        from .self_visibility import check_sample_weights
+
+        self.visibility_weights = check_sample_weights(visibility_weights, rule=visibility_rule)
+        if self.visibility_weights is not None and self_visibility and not self.visibility_grid:
+            raise ValueError("visibility weights need the triangle grid of self-visibility (visibility_grid > 0)")
         if self_visibility and not self.visibility_grid:   # per vertex, interpolated (before 2026-12-02)
             from .self_visibility import visibility
 
@@ -331,7 +340,7 @@ class MaterialState:
 
         mi, model = self.mi, self.model
         grids = [source_triangle_visibility(model, s, self.visibility_rule, self.visibility_grid, self.near_occluders,
-                                            self.curved) for s in sources]
+                                            self.curved, weights=self.visibility_weights) for s in sources]
         base = np.zeros(len(model.expressions), np.uint32)
         for k, s in enumerate(sources):
             base[s] = k * self.n_triangles

@@ -270,7 +270,8 @@ NEAR_STEP = 1e-5
 
 
 def triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
-                        n: int = CELL_SAMPLES, near: float = 0.0, curved: int = 1) -> np.ndarray:
+                        n: int = CELL_SAMPLES, near: float = 0.0, curved: int = 1,
+                        weights: np.ndarray | None = None) -> np.ndarray:
     """(F, (order+1)², L) float32: the self-visibility of each light (``rule`` as :func:`visibility`) at the
     grid points of every triangle (:func:`grid_barycentrics`), traced from the point on the triangle with its
     geometric normal — what the integrator's shadow rays from a hit there let through (``near`` > 0: rays that
@@ -286,9 +287,15 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
     the flat sub-face holding its barycentrics, the ray leaves it with that sub-face's normal, and the rays
     meet the Phong surface — what the shadow rays from a hit there meet. Flat (1), the template's triangles:
     on the demo model's Phong scene these disagreed with the shadow rays on the tilted facets beside the nose
-    (docs/rendering.md, "The visibility on the surface the scene traces")."""
+    (docs/rendering.md, "The visibility on the surface the scene traces").
+
+    ``weights`` (n,) ≥ 0, rule ``cell`` only: the share of a cell is weighted by these per-sample weights (the
+    radiance of the scene's environment along each of :func:`cell_directions`' samples,
+    :func:`emitter_weights`) — the visible share *of the cell's light*, which is what the shadow rays pass
+    of it under that environment; a cell whose samples all weigh 0 keeps the unweighted share."""
     if rule not in VISIBILITY_RULES:
         raise ValueError(f"self-visibility rule {rule!r} is not one of {', '.join(VISIBILITY_RULES)}")
+    w = check_sample_weights(weights, n, rule)
     V = np.asarray(vertices, np.float64)
     F = np.asarray(triangles, np.int64).reshape(-1, 3)
     Ld = np.asarray(directions, np.float64)
@@ -315,12 +322,57 @@ def triangle_visibility(vertices, triangles, directions, rule: str = "cell", ord
         vis = free @ onehot
         empty = count == 0
         vis[:, ~empty] /= count[~empty]
+        if w is not None:   # the share of each cell's light: Σ w free / Σ w over its samples, where it has light
+            wsum = w @ onehot.astype(np.float64)
+            lit = wsum > 0
+            if lit.any():
+                wv = free @ (onehot[:, lit] * w[:, None].astype(np.float32))
+                vis[:, lit] = np.clip(wv / wsum[lit].astype(np.float32), 0.0, 1.0)
         if empty.any():
             vis[:, empty] = _free_from(V, F, P.reshape(-1, 3), Nn.reshape(-1, 3), Ld[empty],
                                        near=near).astype(np.float32)
     out = np.ones((n_faces, len(B), len(Ld)), np.float32)
     out[:, valid] = vis.reshape(n_faces, valid.sum(), len(Ld))
     return out
+
+
+def check_sample_weights(weights, n: int = CELL_SAMPLES, rule: str = "cell") -> np.ndarray | None:
+    """``weights`` as float64 (n,), checked (finite, ≥ 0, not all 0, rule ``cell``); None stays None."""
+    if weights is None:
+        return None
+    w = np.asarray(weights, np.float64)
+    if rule != "cell":
+        raise ValueError(f"self-visibility weights need the 'cell' rule (got rule {rule!r})")
+    if w.shape != (n,):
+        raise ValueError(f"self-visibility weights must have shape ({n},), one per cell sample; got {w.shape}")
+    if not (np.isfinite(w).all() and (w >= 0).all() and w.sum() > 0):
+        raise ValueError(f"self-visibility weights {w.shape} must be finite, >= 0 and not all 0")
+    return w
+
+
+def emitter_weights(emitter, rotation=None, n: int = CELL_SAMPLES) -> np.ndarray:
+    """(n,) float64: the luminance (Rec. 709) of a Mitsuba infinite emitter (``envmap``, ``constant``) along
+    :func:`cell_directions`' samples, which are in the model's frame; ``rotation`` (3, 3) takes them into the
+    world (the face shape's ``to_world``; default the identity). The ``weights`` of :func:`triangle_visibility`."""
+    from ..environment import evaluate_emitter
+
+    samples, _ = cell_directions(np.eye(3), n)
+    R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
+    if R.shape != (3, 3):
+        raise ValueError(f"rotation must be (3, 3); got {R.shape}")
+    d = samples @ R.T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rgb = evaluate_emitter(emitter, d).astype(np.float64)
+    return np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722]), 0.0)
+
+
+def _weights_tag(weights) -> str:
+    """A short hash of the sample weights ('' for none): part of the caches' keys."""
+    if weights is None:
+        return ""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(weights, np.float64)).tobytes()).hexdigest()[:16]
 
 
 def _on_phong_surface(V, F, bary, level: int):
@@ -348,20 +400,20 @@ def _on_phong_surface(V, F, bary, level: int):
 
 
 def source_triangle_visibility(model, source: int, rule: str = "cell", order: int = GRID_ORDER,
-                               near: float = 0.0, curved: int = 1) -> np.ndarray:
+                               near: float = 0.0, curved: int = 1, weights=None) -> np.ndarray:
     """:func:`triangle_visibility` of source expression ``source`` of ``model`` against its registered mesh
-    (cached in memory per model folder, source, rule, order and ``near``, and on disk by what it is computed
-    from: :func:`cached_triangle_visibility`; computed when a material first uses it)."""
-    key = (_key(model), "grid", int(source), rule, int(order), float(near), int(curved))
+    (cached in memory per model folder, source, rule, order, ``near`` and ``weights``, and on disk by what it is
+    computed from: :func:`cached_triangle_visibility`; computed when a material first uses it)."""
+    key = (_key(model), "grid", int(source), rule, int(order), float(near), int(curved), _weights_tag(weights))
     with _LOCK:
         if key not in _CACHE:
             _CACHE[key] = cached_triangle_visibility(model.vertices[source], model.triangles,
                                                      model.light_directions, rule, order, near=near,
-                                                     curved=curved)
+                                                     curved=curved, weights=weights)
         return _CACHE[key]
 
 
-def _disk_path(vertices, triangles, directions, rule, order, near, curved: int = 1) -> Path | None:
+def _disk_path(vertices, triangles, directions, rule, order, near, curved: int = 1, weights=None) -> Path | None:
     import hashlib
 
     from ..formats.files import switched_off, user_cache_dir
@@ -369,6 +421,8 @@ def _disk_path(vertices, triangles, directions, rule, order, near, curved: int =
     if switched_off("MIFACERF_VISIBILITY_CACHE"):
         return None
     what = (CACHE_VERSION, rule, int(order), float(near), CELL_SAMPLES) + ((int(curved),) if int(curved) > 1 else ())
+    if weights is not None:
+        what += (_weights_tag(weights),)
     h = hashlib.sha256(repr(what).encode())
     for a in (np.asarray(vertices, np.float64), np.asarray(triangles, np.int64), np.asarray(directions, np.float64)):
         h.update(repr(a.shape).encode())
@@ -377,14 +431,14 @@ def _disk_path(vertices, triangles, directions, rule, order, near, curved: int =
 
 
 def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cell", order: int = GRID_ORDER,
-                               near: float = 0.0, curved: int = 1) -> np.ndarray:
+                               near: float = 0.0, curved: int = 1, weights=None) -> np.ndarray:
     """:func:`triangle_visibility`, read from the user's cache when an earlier process computed it from the
     same inputs (module doc), else computed and written there (atomically)."""
     import warnings
 
     from ..formats.files import save_npy_atomic
 
-    path = _disk_path(vertices, triangles, directions, rule, order, near, curved)
+    path = _disk_path(vertices, triangles, directions, rule, order, near, curved, weights)
     want = (len(np.asarray(triangles).reshape(-1, 3)), len(grid_barycentrics(order)), len(directions))
     if path is not None and path.exists():
         try:
@@ -399,7 +453,7 @@ def cached_triangle_visibility(vertices, triangles, directions, rule: str = "cel
         except (OSError, ValueError, EOFError) as exc:
             problem = str(exc) or type(exc).__name__
         warnings.warn(f"{path}: a damaged self-visibility cache file ({problem}); recomputed", stacklevel=2)
-    out = triangle_visibility(vertices, triangles, directions, rule, order, near=near, curved=curved)
+    out = triangle_visibility(vertices, triangles, directions, rule, order, near=near, curved=curved, weights=weights)
     if path is not None:
         try:
             save_npy_atomic(path, out)

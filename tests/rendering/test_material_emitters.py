@@ -92,3 +92,18 @@ def test_a_malformed_eye_is_one_line_naming_the_option(capsys):
         err = capsys.readouterr().err
         assert f"--eye: expected three finite numbers X,Y,Z away from the origin, got {bad!r}" in err, err
         assert "Traceback" not in err
+
+
+def test_visibility_emitter_with_a_mode_that_has_no_envmap_is_one_line(capsys):
+    """``--visibility-emitter`` references the comparison's envmap; with a mode whose scenes hold none by that
+    name it is one argparse error naming both options, before any model is opened."""
+    import pytest
+
+    from mifacerf.evaluation import material as M
+
+    for mode in (["--hat", "synth"], ["--emitters"], ["--directional"]):
+        with pytest.raises(SystemExit):
+            M.main(["no-model", "--visibility-emitter", *mode])
+        err = capsys.readouterr().err
+        assert f"--visibility-emitter: only with the comparison or --regions, not with {mode[0]}" in err, err
+        assert "Traceback" not in err

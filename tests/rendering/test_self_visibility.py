@@ -308,3 +308,77 @@ def test_on_the_phong_surface_the_grid_lies_on_the_scene_skin_and_faces_its_sub_
     v = vis[:, valid]
     assert (v[cos > 0.15] == 1).all() and (v[cos < -0.05] == 0).all()
     assert (flat[:, valid] != v).any()
+
+
+def test_cell_shares_weighted_by_the_environment_count_only_its_lit_directions(mi):
+    """With per-sample weights (the environment's radiance along the cell samples), a light's share is the
+    weighted share of its cell's free samples: on a sphere, 1 where every lit sample of the cell lies in front
+    of the triangle's plane although the cell as a whole reaches behind it, 0 where every lit one lies behind;
+    a cell with no lit sample keeps the unweighted share; uniform weights change nothing."""
+    import pytest
+
+    from mifacerf.rendering.self_visibility import cell_directions, triangle_visibility
+
+    V, F = _sphere(200)
+    rng = np.random.default_rng(3)
+    D = rng.normal(size=(12, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    n = 1024
+    samples, cell = cell_directions(D, n)
+    plain = triangle_visibility(V, F, D, rule="cell", order=1, n=n)
+    np.testing.assert_allclose(triangle_visibility(V, F, D, rule="cell", order=1, n=n, weights=np.full(n, 2.5)),
+                               plain, atol=1e-5)
+    w = np.where(samples[:, 2] > 0.3, 1.0 + rng.random(n), 0.0)        # light from the top cap only
+    lit = triangle_visibility(V, F, D, rule="cell", order=1, n=n, weights=w)
+    assert lit.shape == plain.shape and ((lit >= 0) & (lit <= 1)).all()
+    nrm = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    cos = nrm @ samples.T                                              # (F, n)
+    valid = np.array([i + j <= 1 for i in range(2) for j in range(2)])
+    n_front = n_behind = 0
+    for l in range(len(D)):
+        on = (cell == l) & (w > 0)
+        if not on.any():                                               # no light in the cell: unweighted
+            np.testing.assert_array_equal(lit[:, valid, l], plain[:, valid, l])
+            continue
+        front = (cos[:, on] > 0.1).all(1) & (cos[:, cell == l] < -0.1).any(1)
+        behind = (cos[:, on] < -0.1).all(1) & (cos[:, cell == l] > 0.1).any(1)
+        assert (lit[front][:, valid, l] == 1).all() and (plain[front][:, valid, l] < 1).all()
+        assert (lit[behind][:, valid, l] == 0).all() and (plain[behind][:, valid, l] > 0).all()
+        n_front, n_behind = n_front + front.sum(), n_behind + behind.sum()
+    assert n_front > 0 and n_behind > 0                                # the test saw both kinds of cell
+    for bad, words in ((np.ones(n - 1), "shape"), (-np.ones(n), ">= 0"), (np.zeros(n), "not all 0")):
+        with pytest.raises(ValueError, match=words):
+            triangle_visibility(V, F, D, rule="cell", order=1, n=n, weights=bad)
+    with pytest.raises(ValueError, match="'cell' rule"):
+        triangle_visibility(V, F, D, rule="ray", order=1, n=n, weights=w)
+
+
+def test_the_material_weighs_its_visibility_by_the_referenced_environment(toy_model, mi):
+    """facerf_bsdf visibility_emitter (a reference to the scene's environment) gives the material the
+    environment's luminance along the cell samples; a constant environment weighs them all alike, so the
+    grids are the unweighted ones; a point light or a non-emitter is one error naming the parameter."""
+    import pytest
+
+    from mifacerf.rendering.self_visibility import CELL_SAMPLES
+    from mifacerf.variant import ensure_plugins
+
+    ensure_plugins()
+
+    def scene(emitter, ref=True):
+        bsdf = {"type": "facerf_bsdf", "visibility_grid": 1}
+        if ref:
+            bsdf["visibility_emitter"] = {"type": "ref", "id": "env"}
+        return mi.load_dict({"type": "scene", "env": emitter,
+                             "face": {"type": "facerf_face", "model": str(toy_model.root), "bsdf": bsdf}})
+
+    const = {"type": "constant", "radiance": {"type": "rgb", "value": [0.5, 1.0, 2.0]}}
+    state = scene(const).shapes()[0].bsdf().state
+    w = state.visibility_weights
+    assert w.shape == (CELL_SAMPLES,)
+    np.testing.assert_allclose(w, 0.2126 * 0.5 + 0.7152 * 1.0 + 0.0722 * 2.0, rtol=1e-5)
+    plain = scene(const, ref=False).shapes()[0].bsdf().state
+    assert plain.visibility_weights is None
+    np.testing.assert_allclose(np.asarray(state.vis_grid), np.asarray(plain.vis_grid), atol=1e-5)
+    with pytest.raises(Exception, match="visibility_emitter.*environment"):
+        scene({"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": 1.0}})
