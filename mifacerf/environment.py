@@ -166,6 +166,41 @@ def evaluate_emitter(emitter, directions: np.ndarray, chunk: int = 1 << 20) -> n
     return out
 
 
+def sample_emitter(emitter, height: int = 128, sub: int = 4) -> np.ndarray:
+    """(height, 2 height, 3) float32 lat-long map of a Mitsuba infinite emitter, laid out as Mitsuba's
+    ``envmap`` reads a bitmap — column i at u = (i + ½) / W, but row j at v = j / (H − 1), the first and last
+    rows on the poles (not at (j + ½) / H, :func:`latlong_grid`'s texel centres) —, so that
+    :meth:`Environment.mitsuba_dict` of the result shows the emitter again: an ``envmap`` of ``height`` rows
+    is reproduced exactly by ``sub`` = 1.
+
+    Each texel holds the emitter's mean radiance over the texel's part of the sphere (``sub`` x ``sub``
+    stratified directions, weighted by sin θ; the pole rows span half a row), so light concentrated in
+    features smaller than a texel (the windows of a captured probe) is kept where it is. Until 2026-12-04
+    the facerf integrator sampled the scene's emitter at :func:`latlong_grid`'s centres and handed the
+    rows to Mitsuba's layout: up to half a row towards the poles, 2 % of the light lost under ``uffizi.hdr``
+    (docs/rendering.md, "The scene's environment as the exact path reads it"). Negative radiance is clamped
+    to 0."""
+    if height < 2 or sub < 1:
+        raise ValueError(f"sample_emitter: height must be >= 2 and sub >= 1 (got {height}, {sub})")
+    H, W = int(height), 2 * int(height)
+    acc = np.zeros((H, W, 3))
+    wsum = np.zeros((H, 1, 1))
+    lo = np.maximum((np.arange(H) - 0.5) / (H - 1), 0.0)       # row j's span of v (clipped at the poles)
+    hi = np.minimum((np.arange(H) + 0.5) / (H - 1), 1.0)
+    for dy in range(sub):
+        v = lo + (hi - lo) * (dy + 0.5) / sub
+        wrow = (np.sin(v * np.pi) * (hi - lo))[:, None, None]   # solid angle density × the span's length
+        if sub == 1:
+            v, wrow = np.arange(H) / (H - 1), np.ones((H, 1, 1))
+        for dx in range(sub):
+            u = (np.arange(W) + (dx + 0.5) / sub) / W
+            uu, vv = np.meshgrid(u, v)
+            d = uv_to_direction(np.stack([uu, vv], axis=-1)).reshape(-1, 3)
+            acc += wrow * np.maximum(evaluate_emitter(emitter, d).reshape(H, W, 3), 0.0)
+            wsum += wrow
+    return (acc / np.maximum(wsum, 1e-300)).astype(np.float32)
+
+
 def voronoi_shares(samples: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Light basis rule ``voronoi`` (the default): each sample direction belongs wholly to its nearest
     light, i.e. to that light's spherical-Voronoi cell. Returns lights (N, 1) and shares (N, 1) = 1."""

@@ -238,3 +238,32 @@ def _env_file(face, mi):
 
     generated("gradient")
     return cache_dir() / "environments" / "gradient-128.exr"
+
+
+def test_the_scenes_envmap_lights_the_exact_path_as_its_file_does(toy_model, mi, tmp_path):
+    """The facerf integrator lit by the scene's envmap emitter renders what it renders reading the same file
+    itself (``environment=FILE``): the emitter is sampled in the layout Mitsuba reads the map in. (Sampled at
+    latlong_grid's texel centres, as until 2026-12-04, the rows moved up to half a row towards the poles.)"""
+    from mifacerf.imageio import write_exr
+    from mifacerf.rendering.sensors import sensor_dict
+
+    rng = np.random.default_rng(5)
+    data = np.full((64, 128, 3), 0.05, np.float32)
+    for _ in range(12):            # bright windows of a few texels near the zenith, as a captured probe's skylights
+        r, c = rng.integers(1, 8), rng.integers(0, 126)
+        data[r:r + 2, c:c + 2] = rng.uniform(5, 40)
+    path = tmp_path / "windows.exr"
+    write_exr(path, data, half=False)
+    cam = Camera.look_at("c", [0.1, 0.1, 1.0], [0, 0, 0], width=40, height=40, focal=160.0)
+    imgs = {}
+    for how, integ in (("emitter", {"type": "facerf"}), ("file", {"type": "facerf", "environment": str(path)})):
+        scene = mi.load_dict({"type": "scene", "sensor": sensor_dict(cam, spp=4), "integrator": integ,
+                              "env": {"type": "envmap", "filename": str(path)},
+                              "face": {"type": "facerf_face", "model": str(toy_model)}})
+        imgs[how] = np.asarray(mi.render(scene, seed=3))
+    a, b = imgs["emitter"], imgs["file"]
+    m = (a[..., 3] > 0.999) & (b[..., 3] > 0.999)
+    assert m.sum() > 200
+    psnr = 10 * np.log10(b[..., :3][m].max() ** 2 / ((a - b)[..., :3][m] ** 2).mean())
+    ratio = a[..., :3][m].mean() / b[..., :3][m].mean()
+    assert psnr > 50 and abs(ratio - 1) < 0.003, (psnr, ratio)
