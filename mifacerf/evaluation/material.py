@@ -507,7 +507,7 @@ def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) 
 
     from ..environment import latlong_grid
     from ..geometry.visibility import vertex_normals
-    from ..imageio import read_exr
+    from ..environment import Environment
 
     face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
     idx = dr.arange(mi.UInt32, size * size)
@@ -532,7 +532,7 @@ def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) 
     b = np.stack([1 - b1 - b2, b1, b2], 1)
     ns = (b[:, :, None] * vertex_normals(X, F)[F[t]]).sum(1)
     ns /= np.maximum(np.linalg.norm(ns, axis=1, keepdims=True), 1e-30)
-    env = read_exr(env_path)[..., :3].mean(-1)
+    env = Environment.load(env_path).data.mean(-1)          # .exr or .hdr
     dirs, solid = latlong_grid(env.shape[0])
     w, D = (env * solid).reshape(-1), dirs.reshape(-1, 3)
     front = (ns @ D.T) > 0
@@ -542,7 +542,7 @@ def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) 
 
 
 def regions(model, env: str = "interior", size: int = 96, spp: int = 64, integrator: str = "direct",
-            bsdf=None, facet_share: float = 0.2) -> dict:
+            bsdf=None, facet_share: float = 0.2, eye=(0.12, 0.1, 1.0)) -> dict:
     """Where the material's error against the exact path lies (the camera of :func:`compare`, two passes of
     ``spp``). Per pixel class over the pixels of :func:`compare` — the skin, each part, the outline band (the
     face's pixels within 2 of the background), the *facet-blocked* skin (:func:`_facet_blocked` ≥ ``facet_share``) —:
@@ -562,7 +562,7 @@ def regions(model, env: str = "interior", size: int = 96, spp: int = 64, integra
         generated(env)
         env = str(cache_dir() / "environments" / f"{env}-128.exr")
     emitter = {"type": "envmap", "filename": str(env)}
-    camera = Camera.look_at("eval", [0.12, 0.1, 1.0], [0, 0, 0], width=size, height=size, focal=size * 4.0)
+    camera = Camera.look_at("eval", list(eye), [0, 0, 0], width=size, height=size, focal=size * 4.0)
     exact_scene = _scene(mi, model, {"type": "facerf"}, emitter, camera, 16, None)
     ref, mask, _ = _reference(mi, exact_scene)
     label, _ = _labels(mi, exact_scene, size)
@@ -639,7 +639,7 @@ def main(argv=None) -> None:
     ap.add_argument("--integrators", default="direct,path")
     ap.add_argument("--exact-basis", default="voronoi")
     ap.add_argument("--eye", default="0.12,0.1,1.0", help="X,Y,Z: the camera's position in metres, looking at "
-                    "the origin (the comparison only)")
+                    "the origin (the comparison and --regions)")
     ap.add_argument("--no-self-visibility", action="store_true", help="the material keeps the captured "
                     "self-shadowing (shadowed again by the shadow rays)")
     ap.add_argument("--visibility-rule", default=None, help="the material's self-visibility rule: cell "
@@ -691,7 +691,8 @@ def main(argv=None) -> None:
         except ValueError as e:   # one line naming the option, as argparse's own errors
             ap.error(f"--integrators: {e}")
     if a.regions:
-        out = regions(a.model, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0], bsdf=bsdf)
+        out = regions(a.model, env=a.env, size=a.size, spp=a.spp, integrator=a.integrators.split(",")[0], bsdf=bsdf,
+                      eye=eye)
         rows = out.pop("rows")
         print(out)
         for r in rows:
