@@ -313,7 +313,7 @@ def _environment_emitter(obj):
                          f"(<ref name=\"visibility_emitter\" id=\"...\"/>); got {type(obj).__name__}")
     if not mi.has_flag(obj.flags(), mi.EmitterFlags.Infinite) or mi.has_flag(obj.flags(), mi.EmitterFlags.Delta):
         raise ValueError(f"facerf_bsdf: parameter 'visibility_emitter' must be an environment (envmap or "
-                         f"constant); got {obj.class_().name() if hasattr(obj, 'class_') else type(obj).__name__}")
+                         f"constant); got {str(obj).split('[', 1)[0].strip() or type(obj).__name__}")
     return obj
 
 

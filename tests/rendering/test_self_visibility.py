@@ -380,5 +380,5 @@ def test_the_material_weighs_its_visibility_by_the_referenced_environment(toy_mo
     plain = scene(const, ref=False).shapes()[0].bsdf().state
     assert plain.visibility_weights is None
     np.testing.assert_allclose(np.asarray(state.vis_grid), np.asarray(plain.vis_grid), atol=1e-5)
-    with pytest.raises(Exception, match="visibility_emitter.*environment"):
+    with pytest.raises(Exception, match="visibility_emitter.*environment.*got PointLight"):
         scene({"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": 1.0}})
