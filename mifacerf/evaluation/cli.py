@@ -215,10 +215,23 @@ def drive_cmd(synth_out, track, truth_spp, **options):
 @click.option("--spp", type=click.IntRange(min=1), default=256, show_default=True, help="Samples per pixel of each material pass.")
 @click.option("--integrators", default="direct,path", show_default=True)
 @click.option("--no-self-visibility", is_flag=True, help="Keep the captured self-shadowing in the material.")
-def material_cmd(model, env, size, spp, integrators, no_self_visibility):
+@click.option("--eye", default="0.12,0.1,1.0", show_default=True,
+              help="X,Y,Z: the camera's position in metres, looking at the origin.")
+@click.option("--visibility-grid", type=click.IntRange(min=0), default=None,
+              help="facerf_bsdf visibility_grid: the self-visibility grid order inside each triangle (default 3).")
+@click.option("--near-occluders", type=click.FloatRange(min=0), default=None,
+              help="facerf_bsdf near_occluders (metres), for --integrators facerf_direct.")
+@click.option("--visibility-emitter", is_flag=True,
+              help="facerf_bsdf visibility_emitter: the cell shares weighted by the scene's environment.")
+def material_cmd(model, env, size, spp, integrators, no_self_visibility, eye, visibility_grid, near_occluders,
+                 visibility_emitter):
     """The material under Mitsuba's integrators against the exact path: facerf_bsdf rendered by each
     integrator (two passes) against the facerf integrator under ENV; PSNR, noise floor, brightness ratio."""
-    from .material import compare, format_rows
+    from .material import compare, format_rows, material_options, parse_eye
 
-    click.echo(format_rows(compare(model, env, integrators.split(","), size, spp,
-                                   bsdf={"self_visibility": False} if no_self_visibility else None)))
+    try:
+        at = parse_eye(eye)
+    except ValueError as e:
+        raise click.BadParameter(str(e), param_hint="'--eye'") from None
+    bsdf = material_options(not no_self_visibility, None, visibility_grid, near_occluders, visibility_emitter)
+    click.echo(format_rows(compare(model, env, integrators.split(","), size, spp, bsdf=bsdf, eye=at)))

@@ -627,6 +627,33 @@ def format_rows(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def parse_eye(text: str) -> tuple:
+    """``"X,Y,Z"`` (metres) → a camera position away from the origin; ValueError saying what was expected."""
+    try:
+        eye = tuple(float(v) for v in str(text).split(","))
+        if len(eye) != 3 or not np.all(np.isfinite(eye)) or np.linalg.norm(eye) < 1e-6:
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"expected three finite numbers X,Y,Z away from the origin, got {text!r}") from None
+    return eye
+
+
+def material_options(self_visibility: bool = True, visibility_rule=None, visibility_grid=None, near_occluders=None,
+                     visibility_emitter: bool = False) -> dict | None:
+    """The ``facerf_bsdf`` parameters of the command lines' options (None: the defaults);
+    ``visibility_emitter`` references the comparison scenes' envmap (:func:`_scene`'s ``"light"``)."""
+    bsdf = {} if self_visibility else {"self_visibility": False}
+    if visibility_rule:
+        bsdf["visibility_rule"] = visibility_rule
+    if visibility_grid is not None:
+        bsdf["visibility_grid"] = int(visibility_grid)
+    if near_occluders is not None:
+        bsdf["near_occluders"] = float(near_occluders)
+    if visibility_emitter:
+        bsdf["visibility_emitter"] = {"type": "ref", "id": "light"}
+    return bsdf or None
+
+
 def main(argv=None) -> None:
     import argparse
 
@@ -667,24 +694,15 @@ def main(argv=None) -> None:
     ap.add_argument("--pictures", default=None, help="with --hat: a PNG of truth, material and the shadow factors")
     a = ap.parse_args(argv)
     try:
-        eye = tuple(float(v) for v in a.eye.split(","))
-        if len(eye) != 3 or not np.all(np.isfinite(eye)) or np.linalg.norm(eye) < 1e-6:
-            raise ValueError
-    except ValueError:
-        ap.error(f"--eye: expected three finite numbers X,Y,Z away from the origin, got {a.eye!r}")
-    bsdf = {"self_visibility": False} if a.no_self_visibility else {}
-    if a.visibility_rule:
-        bsdf["visibility_rule"] = a.visibility_rule
-    if a.visibility_grid is not None:
-        bsdf["visibility_grid"] = a.visibility_grid
-    if a.near_occluders is not None:
-        bsdf["near_occluders"] = a.near_occluders
+        eye = parse_eye(a.eye)
+    except ValueError as e:
+        ap.error(f"--eye: {e}")
     if a.visibility_emitter:
         others = [o for o in ("parts", "hat", "emitters", "directional", "animation") if getattr(a, o)]
         if others:
             ap.error(f"--visibility-emitter: only with the comparison or --regions, not with --{others[0]}")
-        bsdf["visibility_emitter"] = {"type": "ref", "id": "light"}   # the scenes' envmap (_scene's "light")
-    bsdf = bsdf or None
+    bsdf = material_options(not a.no_self_visibility, a.visibility_rule, a.visibility_grid, a.near_occluders,
+                            a.visibility_emitter)
     for integ in a.integrators.split(","):
         try:
             _integrator_options(integ)

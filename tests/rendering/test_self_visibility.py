@@ -128,6 +128,15 @@ def test_mifacerf_evaluate_material_prints_the_table(toy_model):
                                             "--spp", "4", "--integrators", "direct"])
     assert r.exit_code == 0, r.output
     assert "| direct | 2 x 4 |" in r.output and "facerf (exact)" in r.output
+    # the material's options and the view, as python -m mifacerf.evaluation.material takes them
+    r = CliRunner().invoke(evaluate_group, ["material", str(toy_model.root), "--env", "sky", "--size", "16",
+                                            "--spp", "4", "--integrators", "direct", "--eye", "0.5,0.1,0.9",
+                                            "--visibility-grid", "1", "--visibility-emitter"])
+    assert r.exit_code == 0, r.output
+    assert "| direct | 2 x 4 |" in r.output
+    r = CliRunner().invoke(evaluate_group, ["material", str(toy_model.root), "--eye", "1,2"])
+    assert r.exit_code == 2 and "'--eye': expected three finite numbers X,Y,Z" in r.output, r.output
+    assert "Traceback" not in r.output
 
 
 def test_triangle_visibility_follows_each_triangles_plane(mi):
