@@ -1,15 +1,18 @@
 """A frame's host (Numba) kernels against what they replace, side by side::
 
-    python benchmarks/relight_cpu.py MODEL TRACK [--reps 3] [--env sky] [--size 256] [--switch relight|raster|part-rays]
+    python benchmarks/relight_cpu.py MODEL TRACK [--reps 3] [--env sky] [--size 256] [--switch relight|raster|part-rays|part-cache]
 
 ``--switch relight`` (the default): the relight sum on the CPU (``relight_cpu``) against Dr.Jit's kernel
 (``Renderer.cpu_relight`` True / False); ``--switch raster``: the primary hits rasterised
 (``geometry.raster``) against Mitsuba's ray cast (``MIFACERF_NUMBA_RASTER`` 1 / 0); ``--switch part-rays``:
 the parts' rays cast into the scene curved only round the parts (``CombinedScene.rays``, the default)
-against the whole Phong scene (before 2026-12-04).
+against the whole Phong scene (before 2026-12-04); ``--switch part-cache``: the parts' views uploaded to the
+device once for the frames that read them (``PartFrame(cache=)``, the renderer's) against every frame
+(before 2026-12-04).
 
-Three kinds of warm 256² frames, 4 spp, each rendered by one renderer with ``cpu_relight`` True and then
-False, alternating frame by frame: five frames of the tracked performance ``TRACK`` (the §5 weights of
+Three kinds of warm 256² frames, 4 spp, each rendered by one renderer both ways, which way first
+alternating frame by frame (the second render of a frame skips the BVH rebuild: until 2026-12-04 the new
+way always went first and paid it alone): five frames of the tracked performance ``TRACK`` (the §5 weights of
 each frame's mesh, as ``mifacerf drive`` renders them, ~113 chunks), five of the bench's blends of two
 expressions from ring cameras (``mifacerf bench``'s frames, 12 chunks), and five single captured
 expressions from nearby views (3 chunks). Prints the median seconds per frame of each kind and way, their
@@ -35,7 +38,7 @@ def main(argv=None) -> None:
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--env", default="sky")
     ap.add_argument("--size", type=int, default=256)
-    ap.add_argument("--switch", choices=("relight", "raster", "part-rays"), default="relight")
+    ap.add_argument("--switch", choices=("relight", "raster", "part-rays", "part-cache"), default="relight")
     a = ap.parse_args(argv)
     import drjit as dr
 
@@ -76,6 +79,13 @@ def main(argv=None) -> None:
 
         def use(flag):
             r._combined.rays = reduced if flag else r._combined.scene
+    elif a.switch == "part-cache":
+        ways = {"new": True, "old": False}
+        names = ("uploaded every frame", "uploaded once")
+        kept = r._part_frames
+
+        def use(flag):
+            r._part_frames = kept if flag else None
     else:
         ways = {"new": "1", "old": "0"}
         names = ("ray cast", "raster")
@@ -89,10 +99,13 @@ def main(argv=None) -> None:
                 f()
     times = {(k, w): [] for k in kinds for w in ways}
     images = {}
-    for _ in range(a.reps):
+    for rep in range(a.reps):
         for k, fs in kinds.items():
             for i, f in enumerate(fs):
-                for w, flag in ways.items():
+                # which way renders a frame first alternates: the second render of a frame finds its geometry
+                # in Mitsuba's scene already and skips the BVH rebuild (MeshScene.set_vertices)
+                order = list(ways.items()) if (rep + i) % 2 == 0 else list(ways.items())[::-1]
+                for w, flag in order:
                     use(flag)
                     dr.sync_thread()
                     t = time.perf_counter()

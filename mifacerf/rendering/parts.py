@@ -279,6 +279,11 @@ class CombinedScene:
         return v
 
 
+#: views-upload entries a renderer keeps for :class:`PartFrame` (the last ones used; each holds the device copies
+#: of a frame's part views: a few MB)
+PART_FRAME_CACHE = 4
+
+
 class PartFrame:
     """Device state to shade eye and teeth hits of one frame (see the module docstring).
 
@@ -286,9 +291,13 @@ class PartFrame:
     dict(index (H, W) int rows or −1, depth (H, W), rf rows (N, L, 3))}}; ``lighting``
     {part: (L, 3)}; ``light_dirs`` {part: (L, 3)} world directions in the target;
     ``env_lookup``: for eyes, a callable Vector3f → Color3f (pre-filtered environment).
+    ``cache``: an optional dict (the renderer's, one per model) in which the device copies of the views'
+    texel images and rows are kept, keyed by which views of which parts in which order: consecutive frames
+    that read the same views (a blend from one camera, a drive) upload only the per-frame tables (pose,
+    lighting, camera weights), not the 1–2 M texel indices and rows again (:data:`PART_FRAME_CACHE` entries).
     """
 
-    def __init__(self, model_cameras, n_lights: int, parts: dict, env_lookup=None):
+    def __init__(self, model_cameras, n_lights: int, parts: dict, env_lookup=None, cache: dict | None = None):
         mi = ensure_variant()
         self.mi = mi
         self.L = n_lights
@@ -297,35 +306,54 @@ class PartFrame:
         n_parts = len(PARTS)
         tab = np.zeros((n_parts, 12 + 2 * n_lights * 3))  # T_ref (12), lighting (L*3), light dirs (L*3)
         cams = np.zeros((n_parts, 3, 2))  # (camera index, weight)
-        index_parts, depth_parts, rf_parts, offs = [], [], [], np.zeros((n_parts, 3), np.int64)
-        img_off, row_off = 0, 0
-        cam_table = []
+        slots = []                        # (part slot k, camera slot m, camera c, view) in upload order
         for p, info in parts.items():
             k = PARTS.index(p)
             tab[k, :12] = info["reference"][:3, :4].reshape(-1)
             tab[k, 12:12 + n_lights * 3] = np.asarray(info["lighting"]).reshape(-1)
             tab[k, 12 + n_lights * 3:] = np.asarray(info["light_dirs"]).reshape(-1)
             for m, (c, w, view) in enumerate(info["views"][:3]):
-                cams[k, m] = (len(cam_table), w)
-                cam_table.append(camera_params(model_cameras[c]))
-                idx = np.where(view["index"] >= 0, view["index"] + row_off, -1).reshape(-1)
-                index_parts.append(idx)
-                depth_parts.append(view["depth"].reshape(-1))
-                rf_parts.append(np.asarray(view["rf"]))
-                offs[k, m] = img_off
-                img_off += idx.size
-                row_off += len(view["rf"])
-        F16 = __import__("drjit").float16_array_t(mi.Float)
+                cams[k, m] = (len(slots), w)
+                slots.append((k, m, c, view))
+        key = tuple((k, m, c, id(view)) for k, m, c, view in slots)
+        held = cache.get(key) if cache is not None else None
+        if held is None or any(a is not b for a, (_, _, _, b) in zip(held["views"], slots)):
+            held = self._upload_views(mi, model_cameras, slots, n_parts)
+            if cache is not None:
+                cache.pop(key, None)
+                cache[key] = held
+                while len(cache) > PART_FRAME_CACHE:
+                    cache.pop(next(iter(cache)))
+        self.offs, self.cam_table, self.index, self.depth, self.rf = (
+            held["offs"], held["cam_table"], held["index"], held["depth"], held["rf"])
         self.table = to_jit(mi.Float, tab.reshape(-1))
         self.stride = tab.shape[1]
         self.cams = to_jit(mi.Float, cams.reshape(-1))
-        self.offs = to_jit(mi.UInt32, offs.reshape(-1).astype(np.uint32))
-        self.cam_table = to_jit(mi.Float, np.concatenate(cam_table) if cam_table else np.zeros(CAM_PARAMS))
-        self.index = to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32) if index_parts
-                            else np.full(1, -1, np.int32))
-        self.depth = to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1))
-        self.rf = to_jit(F16, np.concatenate(rf_parts).reshape(-1) if rf_parts else np.zeros(3))
         self.depth_tolerance = 0.004
+
+    @staticmethod
+    def _upload_views(mi, model_cameras, slots, n_parts: int) -> dict:
+        """The device copies of the views' texel images (index, depth), rows and cameras, in ``slots``' order."""
+        index_parts, depth_parts, rf_parts, offs = [], [], [], np.zeros((n_parts, 3), np.int64)
+        img_off, row_off = 0, 0
+        cam_table = []
+        for k, m, c, view in slots:
+            cam_table.append(camera_params(model_cameras[c]))
+            idx = np.where(view["index"] >= 0, view["index"] + row_off, -1).reshape(-1)
+            index_parts.append(idx)
+            depth_parts.append(view["depth"].reshape(-1))
+            rf_parts.append(np.asarray(view["rf"]))
+            offs[k, m] = img_off
+            img_off += idx.size
+            row_off += len(view["rf"])
+        F16 = __import__("drjit").float16_array_t(mi.Float)
+        return {"views": [v for _, _, _, v in slots],   # held, so that their ids stay theirs while cached
+                "offs": to_jit(mi.UInt32, offs.reshape(-1).astype(np.uint32)),
+                "cam_table": to_jit(mi.Float, np.concatenate(cam_table) if cam_table else np.zeros(CAM_PARAMS)),
+                "index": to_jit(mi.Int32, np.concatenate(index_parts).astype(np.int32) if index_parts
+                                else np.full(1, -1, np.int32)),
+                "depth": to_jit(mi.Float, np.concatenate(depth_parts) if depth_parts else np.zeros(1)),
+                "rf": to_jit(F16, np.concatenate(rf_parts).reshape(-1) if rf_parts else np.zeros(3))}
 
     def shade(self, scene, part, q, p, n, view_dir, active=True):
         """Colour (Color3f) of hits on parts: ``part`` (UInt32, PARTS index), rest-frame point ``q``,

@@ -168,6 +168,7 @@ class Renderer:
         # (relight.cpu_kernel: llvm variants with Numba, unless MIFACERF_NUMBA_RELIGHT=0); False: Dr.Jit's
         self.cpu_relight: bool | None = None
         self._part_views: dict[tuple[str, int, str], dict | None] = {}
+        self._part_frames: dict = {}   # PartFrame's device copies of the views, by which views (parts.PART_FRAME_CACHE)
 
     # -------------------------------------------------------------- lighting
     #: rotated light bases kept (the most recently used environments): a sequence lit by a new
@@ -391,7 +392,7 @@ class Renderer:
 
             return _ev().Color3f(*basis._lookup(d))
 
-        return PartFrame(model.cameras, len(self.light_directions), info, env_lookup)
+        return PartFrame(model.cameras, len(self.light_directions), info, env_lookup, cache=self._part_frames)
 
     def _part_view(self, ref: str, c: int, part: str):
         """Part ``part``'s texels in camera ``c`` of expression ``ref`` as :class:`.parts.PartFrame` reads them

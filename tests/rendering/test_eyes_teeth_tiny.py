@@ -181,3 +181,29 @@ def test_facerf_direct_starts_part_rays_as_the_exact_path(built_root):
     skin = label == 0
     np.testing.assert_array_equal(on[skin], off[skin])
     assert dr.width(si.p) == 2
+
+
+@pytest.mark.slow
+def test_part_views_are_uploaded_once_for_frames_that_read_them(built, monkeypatch):
+    """Consecutive frames that read the same part views (here two blends from one camera) share the device
+    copies of the views' texels (PartFrame's cache, held by the renderer), and render what they render with the
+    copies made anew for every frame (the cache off), bit for bit."""
+    from mifacerf.environment import resolve
+    from mifacerf.rendering import parts as P
+
+    face, _ = built
+    env = resolve("sky")
+    cam = face.model.cameras[1]
+    made = []
+    upload = P.PartFrame._upload_views
+    monkeypatch.setattr(P.PartFrame, "_upload_views", staticmethod(lambda *a: made.append(1) or upload(*a)))
+    blends = [{"viseme_aa": 0.7, "neutral": 0.3}, {"viseme_aa": 0.6, "neutral": 0.4}]
+    cached = [face.render(b, camera=cam, env=env, spp=2) for b in blends]
+    assert len(made) == 1, made                       # the second frame's views came from the cache
+    monkeypatch.setattr(P, "PART_FRAME_CACHE", 0)
+    face.renderer._part_frames.clear()
+    fresh = [face.render(b, camera=cam, env=env, spp=2) for b in blends]
+    assert len(made) == 3
+    for a, b in zip(cached, fresh):
+        np.testing.assert_array_equal(a, b)
+    assert np.abs(cached[0] - cached[1]).max() > 1e-4  # and the two frames are two frames
