@@ -389,5 +389,12 @@ def test_the_material_weighs_its_visibility_by_the_referenced_environment(toy_mo
     plain = scene(const, ref=False).shapes()[0].bsdf().state
     assert plain.visibility_weights is None
     np.testing.assert_allclose(np.asarray(state.vis_grid), np.asarray(plain.vis_grid), atol=1e-5)
+    # the scene-file form the manual gives: <ref name="visibility_emitter" id="..."/>
+    xml = mi.load_string(f"""<scene version="3.0.0">
+        <emitter type="constant" id="env"><rgb name="radiance" value="0.5, 1.0, 2.0"/></emitter>
+        <shape type="facerf_face"><string name="model" value="{toy_model.root}"/>
+            <bsdf type="facerf_bsdf"><integer name="visibility_grid" value="1"/>
+                <ref name="visibility_emitter" id="env"/></bsdf></shape></scene>""")
+    np.testing.assert_allclose(xml.shapes()[0].bsdf().state.visibility_weights, w)
     with pytest.raises(Exception, match="visibility_emitter.*environment.*got PointLight"):
         scene({"type": "point", "position": [0, 0, 2], "intensity": {"type": "rgb", "value": 1.0}})
