@@ -185,13 +185,14 @@ def sample_emitter(emitter, height: int = 128, sub: int = 4) -> np.ndarray:
     H, W = int(height), 2 * int(height)
     acc = np.zeros((H, W, 3))
     wsum = np.zeros((H, 1, 1))
-    lo = np.maximum((np.arange(H) - 0.5) / (H - 1), 0.0)       # row j's span of v (clipped at the poles)
-    hi = np.minimum((np.arange(H) + 0.5) / (H - 1), 1.0)
-    for dy in range(sub):
-        v = lo + (hi - lo) * (dy + 0.5) / sub
-        wrow = (np.sin(v * np.pi) * (hi - lo))[:, None, None]   # solid angle density × the span's length
-        if sub == 1:
-            v, wrow = np.arange(H) / (H - 1), np.ones((H, 1, 1))
+    if sub == 1:   # the texel positions themselves (the pole rows on the poles)
+        rows = [(np.arange(H) / (H - 1), np.ones((H, 1, 1)))]
+    else:          # stratified in row j's span of v (clipped at the poles), weighted by sin θ × the span's length
+        lo = np.maximum((np.arange(H) - 0.5) / (H - 1), 0.0)
+        hi = np.minimum((np.arange(H) + 0.5) / (H - 1), 1.0)
+        rows = [(v, (np.sin(v * np.pi) * (hi - lo))[:, None, None])
+                for v in (lo + (hi - lo) * (dy + 0.5) / sub for dy in range(sub))]
+    for v, wrow in rows:
         for dx in range(sub):
             u = (np.arange(W) + (dx + 0.5) / sub) / W
             uu, vv = np.meshgrid(u, v)

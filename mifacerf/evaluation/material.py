@@ -505,9 +505,8 @@ def _facet_blocked(mi, scene, model, size: int, env_path: str, expression=None) 
     whose real surface follows the smooth normal, holds it. NaN off the skin."""
     import drjit as dr
 
-    from ..environment import latlong_grid
+    from ..environment import Environment, latlong_grid
     from ..geometry.visibility import vertex_normals
-    from ..environment import Environment
 
     face = [sh for sh in scene.shapes() if sh.id() == "face"][0]
     idx = dr.arange(mi.UInt32, size * size)

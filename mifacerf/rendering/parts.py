@@ -315,15 +315,15 @@ class PartFrame:
             for m, (c, w, view) in enumerate(info["views"][:3]):
                 cams[k, m] = (len(slots), w)
                 slots.append((k, m, c, view))
+        # the views' ids name them: an entry holds its views, so no other object takes an id while it is kept
         key = tuple((k, m, c, id(view)) for k, m, c, view in slots)
-        held = cache.get(key) if cache is not None else None
-        if held is None or any(a is not b for a, (_, _, _, b) in zip(held["views"], slots)):
+        held = cache.pop(key, None) if cache is not None else None
+        if held is None:
             held = self._upload_views(mi, model_cameras, slots, n_parts)
-            if cache is not None:
-                cache.pop(key, None)
-                cache[key] = held
-                while len(cache) > PART_FRAME_CACHE:
-                    cache.pop(next(iter(cache)))
+        if cache is not None:
+            cache[key] = held                   # the most recently used last
+            while len(cache) > PART_FRAME_CACHE:
+                cache.pop(next(iter(cache)))
         self.offs, self.cam_table, self.index, self.depth, self.rf = (
             held["offs"], held["cam_table"], held["index"], held["depth"], held["rf"])
         self.table = to_jit(mi.Float, tab.reshape(-1))

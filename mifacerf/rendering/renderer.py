@@ -361,7 +361,7 @@ class Renderer:
         if expression_weights is not None:
             weights = {g: dict(zip(model.expressions, np.asarray(expression_weights)[ids].mean(axis=0)))
                        for g, ids in self._margins.items()}
-        info = {}
+        info, deltas = {}, []   # deltas: each part's rotation in info's order
         look = -camera.forward
         sampler = self._view_sampler()
         for p, T_t in parts.items():
@@ -384,12 +384,11 @@ class Renderer:
                 if (ref, cam.name + ":parts") not in stats.fields_loaded:
                     stats.fields_loaded.append((ref, cam.name + ":parts"))
             if views:
-                info[p] = {"reference": T_ref, "R_delta": R_delta,
-                           "light_dirs": self.light_directions @ R_delta, "views": views}
+                info[p] = {"reference": T_ref, "light_dirs": self.light_directions @ R_delta, "views": views}
+                deltas.append(R_delta)
         if info:   # the parts' lighting in one call (0.19 ms for five parts; 0.88 ms one by one), row by row the same
-            lit = basis.rotated(np.stack([v.pop("R_delta") for v in info.values()]))
-            for k, v in enumerate(info.values()):
-                v["lighting"] = lit[k]
+            for v, lighting in zip(info.values(), basis.rotated(np.stack(deltas))):
+                v["lighting"] = lighting
 
         def env_lookup(d):
             from ..variant import ensure_variant as _ev
