@@ -15,6 +15,9 @@ import numpy as np
 from .formats.files import atomic_target, atomic_write_bytes
 from .errors import MifacerfError
 
+#: Rec. 709 luminance of linear RGB (the weights of R, G, B)
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+
 EXR_MAGIC = b"\x76\x2f\x31\x01"
 
 

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..imageio import LUMINANCE   # Rec. 709 luminance: the channel the skin's texture is continued in
+
 
 def dot_mask(shape: tuple[int, int], centres: np.ndarray, radius) -> np.ndarray:
     """(H, W) bool: pixels whose centre lies within ``radius`` (scalar or (N,)) of a centre (N, 2)."""
@@ -152,8 +154,6 @@ def mask_radius(dot_radius_px: float, margin: float = 1.0) -> float:
 
 #: red + green: the signal a yellow dot pixel's lighting shares are read from (its blue is weak)
 SHARE_WEIGHTS = np.array([0.5, 0.5, 0.0])
-#: Rec. 709 luminance of linear RGB: the channel the skin's texture is continued in
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def shading_ratio_fill(inpainter: Inpainter, images: np.ndarray, valid: np.ndarray | None = None,

@@ -31,7 +31,9 @@ PRIOR_YELLOW = np.array([1.0, 0.9, 0.15])
 
 
 def luminance(img: np.ndarray) -> np.ndarray:
-    return (img[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)).astype(np.float32)
+    from ..imageio import LUMINANCE
+
+    return (img[..., :3] @ LUMINANCE.astype(np.float32)).astype(np.float32)
 
 
 def gaussian(img: np.ndarray, sigma: float) -> np.ndarray:

@@ -355,6 +355,7 @@ def emitter_weights(emitter, rotation=None, n: int = CELL_SAMPLES) -> np.ndarray
     :func:`cell_directions`' samples, which are in the model's frame; ``rotation`` (3, 3) takes them into the
     world (the face shape's ``to_world``; default the identity). The ``weights`` of :func:`triangle_visibility`."""
     from ..environment import evaluate_emitter
+    from ..imageio import LUMINANCE
 
     samples, _ = cell_directions(np.eye(3), n)
     R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
@@ -363,7 +364,7 @@ def emitter_weights(emitter, rotation=None, n: int = CELL_SAMPLES) -> np.ndarray
     d = samples @ R.T
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rgb = evaluate_emitter(emitter, d).astype(np.float64)
-    return np.maximum(rgb @ np.array([0.2126, 0.7152, 0.0722]), 0.0)
+    return np.maximum(rgb @ LUMINANCE, 0.0)
 
 
 def _weights_tag(weights) -> str:

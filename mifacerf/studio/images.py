@@ -58,7 +58,9 @@ def tone_map(img: np.ndarray, exposure: float = 0.0, gamma: float = 2.2, white: 
         img = np.repeat(img[..., None], 3, axis=2)
     img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)
     if white is None:
-        lum = img @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        from ..imageio import LUMINANCE
+
+        lum = img @ LUMINANCE.astype(np.float32)
         white = float(np.percentile(lum, 99.5)) if lum.size else 1.0
     white = max(white, 1e-12)
     gamma = float(np.clip(gamma, 0.2, 5.0))
