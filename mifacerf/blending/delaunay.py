@@ -233,6 +233,8 @@ def _try_delaunay(points, options):
         return None
     S = tri.simplices.astype(np.int64)
     N = tri.neighbors.astype(np.int64)
+    if S.size and S.max() >= len(points):   # on (nearly) flat input qhull can keep its point at infinity (Qz)
+        return None
     ghost = mark_slivers(points, S, N)
     if not _valid(points, S, N, ghost):
         return None

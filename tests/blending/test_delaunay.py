@@ -201,6 +201,7 @@ def test_weights_properties(args):
 
 @SET
 @given(points_strategy)
+@example((275329197, 3, 24, "flat"))   # qhull kept its point at infinity in a simplex (found by a clean-clone run)
 def test_weights_are_continuous(args):
     seed, m, n, kind = args
     P, rng = make_points(seed, m, n, kind)
