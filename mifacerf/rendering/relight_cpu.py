@@ -7,8 +7,9 @@ The same sum as :func:`.relight.lit_texels` (paper Fig. 7, third row), for every
 laid out the other way round. Dr.Jit's kernel puts one texel in each SIMD lane, so every read of a
 field row and of a vertex's lighting is a gather; on the AVX-512 cores measured the gathers, not the
 arithmetic, bound it. Here one call walks a texel's row of L × 3 float16 values *contiguously*, with its
-three vertices' lighting rows beside it: plain vector loads, the halves decoded exactly (the rule of
-:func:`.relight.half_to_float`, subnormals included) in two branch-free passes, 48 partial sums
+three vertices' lighting rows beside it: plain vector loads, the halves decoded exactly (the values of
+:func:`.relight.half_to_float`'s rule, subnormals included) where they are read, by LLVM's own half → float
+widening (one ``vcvtph2ps`` per 16 halves on x86 with F16C; :func:`._numba_kernels._half`), 48 partial sums
 (3 channels × 16 lanes) so that nothing needs reassociating. The sums are added in another order than
 Dr.Jit's, so the two agree to float32 rounding (images 150 dB apart), not bit for bit.
 
